@@ -1,0 +1,127 @@
+"""The ``jaxcos`` command line: thin layers over the public API.
+
+Every command exits non-zero with one line on stderr (no traceback) on bad
+input, writes only under its ``--out``, and refuses to overwrite an existing
+result without ``--force``.
+"""
+
+import argparse
+import os
+import sys
+
+from ._errors import InputError
+
+
+def refuse_overwrite(paths, force):
+    """Raise :class:`InputError` if any of ``paths`` exists and ``force`` is off."""
+    for path in paths:
+        if os.path.exists(path) and not force:
+            raise InputError(f"{path}: already exists; pass --force to overwrite it.")
+
+
+# --- eval ------------------------------------------------------------------------
+
+
+def _cmd_eval(args):
+    from ._commands import run_eval
+
+    run_eval(args)
+
+
+def _add_eval(sub):
+    p = sub.add_parser("eval", help="evaluate the BSDF of a params.json at given angles",
+                       description="Evaluate the BSDF of PARAMS at the theta_i,theta_o[,phi_o] rows of ANGLES.csv; "
+                       "writes OUT.csv with r,g,b and their Monte Carlo standard errors r_std,g_std,b_std.")
+    p.add_argument("params", metavar="PARAMS", help="params.json (FORMATS.md)")
+    p.add_argument("--angles", required=True, metavar="ANGLES.csv", help="CSV with columns theta_i,theta_o[,phi_o] in degrees")
+    p.add_argument("--out", required=True, metavar="OUT.csv")
+    p.add_argument("--walks", type=int, default=None, help="walks per incidence direction (default: the library default)")
+    p.add_argument("--bounces", type=int, default=None, help="bounces per walk (default: the library default)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quantity", choices=("brdf", "reflectance_factor"), default="brdf",
+                   help="write f (1/sr) or the reflectance factor pi*f")
+    p.add_argument("--force", action="store_true", help="overwrite OUT.csv if it exists")
+    p.set_defaults(func=_cmd_eval)
+
+
+# --- import ----------------------------------------------------------------------
+
+
+def _cmd_import(args):
+    from ._measurements import import_raw, save_measurements
+
+    refuse_overwrite([args.out], args.force)
+    meas = import_raw(args.raw)
+    save_measurements(meas, args.out, overwrite=True)
+    print(f"wrote {args.out}: {meas.n_points} points, linear sRGB reflectance factors (D65).")
+
+
+def _add_import(sub):
+    p = sub.add_parser("import", help="convert a raw spectral instrument file to a measurement CSV",
+                       description="Read a raw tab-separated gonioreflectometer file (theta_i, theta_o and 81 "
+                       "reflectance factors at 380, 385, ..., 780 nm per row), convert the spectra to linear sRGB "
+                       "(CIE 1931 2 degree observer, D65) and write the measurement CSV of FORMATS.md.")
+    p.add_argument("raw", metavar="RAW.txt", help="raw tab-separated instrument file")
+    p.add_argument("--out", required=True, metavar="FILE.csv")
+    p.add_argument("--force", action="store_true", help="overwrite FILE.csv if it exists")
+    p.set_defaults(func=_cmd_import)
+
+
+# --- plot ------------------------------------------------------------------------
+
+
+def _cmd_plot(args):
+    from ._measurements import load_measurements
+    from ._plot import plot_measurements
+
+    refuse_overwrite([args.out], args.force)
+    plot_measurements(load_measurements(args.measurements), args.out, exposure=args.exposure, overwrite=True)
+    print(f"wrote {args.out}.")
+
+
+def _add_plot(sub):
+    p = sub.add_parser("plot", help="draw measurements as a reflectance table (PNG)",
+                       description="Draw the in-plane points of MEASUREMENTS.csv as a table like Figure 4 of "
+                       "Lanza et al. 2024: theta_o across, theta_i down, each cell the reflectance factor in sRGB "
+                       "at a stated exposure, black where there is no data.")
+    p.add_argument("measurements", metavar="MEASUREMENTS.csv", help="measurement CSV (FORMATS.md)")
+    p.add_argument("--out", required=True, metavar="FIG.png")
+    p.add_argument("--exposure", type=float, default=None,
+                   help="factor applied to the reflectance factor before sRGB encoding "
+                   "(default: the 95th percentile maps to 0.8)")
+    p.add_argument("--force", action="store_true", help="overwrite FIG.png if it exists")
+    p.set_defaults(func=_cmd_plot)
+
+
+# --- registry ----------------------------------------------------------------------
+
+_COMMANDS = [_add_eval, _add_import, _add_plot]
+
+
+def _parser():
+    parser = argparse.ArgumentParser(
+        prog="jaxcos",
+        description="Differentiable appearance of cosmetics: simulate, fit and compare layered BSDFs.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in _COMMANDS:
+        add(sub)
+    return parser
+
+
+def main(argv=None):
+    """Entry point of the ``jaxcos`` console script; returns the exit status."""
+    args = _parser().parse_args(argv)
+    try:
+        status = args.func(args)
+    except InputError as err:
+        print(f"jaxcos {args.command}: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"jaxcos {args.command}: interrupted.", file=sys.stderr)
+        return 130
+    return int(status or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

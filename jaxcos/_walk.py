@@ -1,0 +1,567 @@
+"""The estimator: position-free Monte Carlo random walks in a layered slab.
+
+One walk starts along ``-wi`` at the top of the stack and makes ``bounces``
+steps of a fixed-length :func:`jax.lax.scan`; each step is a free flight and a
+scattering event. At every event the walk connects to *all* outgoing
+directions of its incidence at once (next-event estimation, MODEL.md
+section 4), so one batch of walks per incidence serves every ``wo``.
+
+Derivatives (``jax.grad``, ``jax.jvp``, ``jax.jacfwd``) are unbiased because
+no random decision has a probability that depends on a parameter:
+
+* **Free flights are conditioned** to end inside the stack. The depth is drawn
+  from the exponential law truncated at the boundary ahead (inverse CDF, a
+  smooth function of the parameters: reparameterization), and the walk's
+  throughput is multiplied by the probability of not leaving,
+  ``1 - exp(-tau)``. There is no "escaped" or "absorbed by the base" branch
+  whose threshold moves with the parameters; that energy is tallied in
+  expectation instead. In a stack, the layer in which the flight ends is
+  chosen uniformly among the layers ahead and weighted by its probability; a
+  Lambertian base is reached with probability 1/2 (when flying down) and
+  weighted by the transmittance.
+* **Lobe selection uses fixed probabilities** (equal among the lobes the
+  variant contains) and one-sample MIS: the throughput is multiplied by
+  ``W(w -> w') / pdf_mix(w')``, where ``pdf_mix`` is the mixture of the lobe
+  densities with those same fixed probabilities. Only the direction within a
+  lobe is a continuous, reparameterized sample.
+
+With a fixed key, every estimate is then a smooth function of every parameter
+(common random numbers), which is what Levenberg-Marquardt needs; the
+derivative of the estimate is an unbiased estimate of the derivative. See
+``docs/derivatives.md`` for the argument.
+
+Cost: every step evaluates the phase functions of all the lobes present (a
+vectorised walk samples every lobe and selects), and ``walks x J`` NEE
+connections; the structure of the :class:`~jaxcos.Material` (variant, layer
+count, base) is static, so a variant's program contains only its own lobes.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _phase as P
+
+DEFAULT_WALKS = 128
+"""Walks per incidence direction (the paper's budget)."""
+DEFAULT_BOUNCES = 512
+"""Scattering events per walk (the paper's budget)."""
+
+_BASE_PROB = 0.5  # probability of choosing a Lambertian base when flying down
+_MIN_MU = 1e-6
+
+
+# --- the query -------------------------------------------------------------------
+
+
+class Query(eqx.Module):
+    """Directions of one BSDF evaluation, grouped by incidence.
+
+    Attributes:
+        wi: ``(I, 3)`` unique directions towards the light.
+        wo: ``(I, J, 3)`` outgoing directions per incidence (rows padded by
+            repetition to a common ``J``).
+        pair_i, pair_j: ``(N,)`` indices mapping each requested pair to its
+            ``(incidence, outgoing)`` slot.
+    """
+
+    wi: jnp.ndarray
+    wo: jnp.ndarray
+    pair_i: jnp.ndarray
+    pair_j: jnp.ndarray
+
+
+def _direction_in(theta_deg):
+    th = jnp.deg2rad(theta_deg)
+    return jnp.stack([-jnp.sin(th), jnp.zeros_like(th), jnp.cos(th)], axis=-1)
+
+
+def _direction_out(theta_deg, phi_deg):
+    th, ph = jnp.deg2rad(theta_deg), jnp.deg2rad(phi_deg)
+    return jnp.stack([jnp.sin(th) * jnp.cos(ph), jnp.sin(th) * jnp.sin(ph), jnp.cos(th)], axis=-1)
+
+
+def make_query(theta_i_deg, theta_o_deg, phi_o_deg=None):
+    """Group angle pairs (degrees, MODEL.md section 1 convention) by incidence.
+
+    With concrete angles, pairs sharing a ``theta_i`` share one batch of walks.
+    With traced angles (inside ``jit``) grouping is impossible and each pair
+    gets its own walks: correct, but slower.
+    """
+    theta_i_deg = jnp.asarray(theta_i_deg) if isinstance(theta_i_deg, jax.core.Tracer) else theta_i_deg
+    if phi_o_deg is None:
+        phi_o_deg = jnp.zeros_like(jnp.asarray(theta_o_deg, dtype=float))
+    if any(isinstance(a, jax.core.Tracer) for a in (theta_i_deg, theta_o_deg, phi_o_deg)):
+        ti = jnp.atleast_1d(jnp.asarray(theta_i_deg, dtype=float))
+        to = jnp.broadcast_to(jnp.asarray(theta_o_deg, dtype=float), ti.shape)
+        po = jnp.broadcast_to(jnp.asarray(phi_o_deg, dtype=float), ti.shape)
+        n = ti.shape[0]
+        return Query(_direction_in(ti), _direction_out(to, po)[:, None, :], jnp.arange(n), jnp.zeros(n, int))
+    ti = np.atleast_1d(np.asarray(theta_i_deg, dtype=float))
+    to = np.broadcast_to(np.asarray(theta_o_deg, dtype=float), ti.shape)
+    po = np.broadcast_to(np.asarray(phi_o_deg, dtype=float), ti.shape)
+    unique, pair_i = np.unique(ti, return_inverse=True)
+    rows = [np.flatnonzero(pair_i == i) for i in range(len(unique))]
+    width = max(len(r) for r in rows)
+    pair_j = np.zeros(len(ti), dtype=int)
+    slots = np.zeros((len(unique), width), dtype=int)
+    for i, r in enumerate(rows):
+        pair_j[r] = np.arange(len(r))
+        slots[i] = np.concatenate([r, np.full(width - len(r), r[-1])])
+    dtype = jnp.result_type(float)
+    wo = _direction_out(jnp.asarray(to[slots], dtype), jnp.asarray(po[slots], dtype))
+    return Query(_direction_in(jnp.asarray(unique, dtype)), wo, jnp.asarray(pair_i), jnp.asarray(pair_j))
+
+
+# --- the medium ------------------------------------------------------------------
+
+
+class _Medium(eqx.Module):
+    """A material's layers stacked along a leading axis, with the variant applied."""
+
+    t: jnp.ndarray  # (L,)
+    top: jnp.ndarray  # (L,) depth of each layer's top
+    c_d: jnp.ndarray
+    albedo_d: jnp.ndarray  # (L, 3)
+    g1: jnp.ndarray
+    g2: jnp.ndarray
+    w_g: jnp.ndarray
+    albedo_p: jnp.ndarray  # (L, 3)
+    alpha_p: jnp.ndarray
+    m: jnp.ndarray  # (L, 3)
+    diffusers: bool = eqx.field(static=True)
+    platelets: bool = eqx.field(static=True)
+    two_lobes: bool = eqx.field(static=True)
+
+    @property
+    def n_layers(self):
+        return self.t.shape[0]
+
+    def take(self, k):
+        """Per-walk parameters of layer ``k`` (``(W,)`` ints); a no-op gather for one layer."""
+        if self.n_layers == 1:
+            return jax.tree.map(lambda a: a[0], self)
+        return jax.tree.map(lambda a: a[k], self)
+
+    def sigma_t(self, w, sig_s=None):
+        """Extinction ``c_d + (1 - c_d) sigma_S(w)`` (achromatic); ``sig_s`` if already known."""
+        if not self.platelets:
+            return jnp.ones(w.shape[:-1], w.dtype)
+        if sig_s is None:
+            sig_s = P.sggx_sigma(w, self.m, self.alpha_p)
+        if not self.diffusers:
+            return sig_s
+        return self.c_d + (1.0 - self.c_d) * sig_s
+
+    def lobes(self, w, w_out):
+        """Lobe values ``(f_d, sigma_S(w) f_p)`` of ``w -> w'`` (1/sr); ``None`` for an absent part.
+
+        ``f_d`` is the diffuser mixture ``w_g f_HG(g1) + (1 - w_g) f_HG(g2)``,
+        ``sigma_S(w) f_p = D(h) / 4`` the platelets' specular reflection.
+        """
+        f_d = f_p = None
+        if self.diffusers:
+            f_d = P.hg(w, w_out, self.g1)
+            if self.two_lobes:
+                f_d = self.w_g * f_d + (1.0 - self.w_g) * P.hg(w, w_out, self.g2)
+        if self.platelets:
+            f_p = P.flake_reflection(w, w_out, self.m, self.alpha_p)
+        return f_d, f_p
+
+    def prefactors(self, sig_t):
+        """RGB factors ``(k_d, k_p)`` with ``W(w -> w') = k_d f_d + k_p sigma_S(w) f_p`` (MODEL.md eq. 8).
+
+        ``k_d = albedo_d c_d / sigma_t(w)``, ``k_p = albedo_p (1 - c_d) / sigma_t(w)``;
+        ``sig_t``: the extinction along ``w``.
+        """
+        inv = 1.0 / sig_t
+        k_d = (self.c_d * inv)[..., None] * self.albedo_d if self.diffusers else None
+        if self.platelets:
+            c_p = 1.0 - self.c_d if self.diffusers else 1.0
+            k_p = (c_p * inv)[..., None] * self.albedo_p
+        else:
+            k_p = None
+        return k_d, k_p
+
+    def scatter(self, w, w_out, sig_t):
+        """Per-collision weight ``W(w -> w')`` (RGB, 1/sr): scattering over extinction.
+
+        ``sig_t``: the extinction along ``w``. Leading axes of ``w``/``w_out``
+        broadcast against the parameters' shape.
+        """
+        return _combine(self.lobes(w, w_out), self.prefactors(sig_t))
+
+    def depth_optical(self, sig_layers, z):
+        """``sum_l sigma_l clip(z - top_l, 0, t_l)``: optical depth from the top to depth ``z`` per unit ``|mu|``.
+
+        ``sig_layers``: ``(..., L)`` extinctions of each layer along a direction.
+        """
+        return jnp.sum(sig_layers * jnp.clip(z[..., None] - self.top, 0.0, self.t), axis=-1)
+
+
+def _combine(lobes, factors):
+    """``k_d f_d + k_p f_p`` over the parts present (RGB on the last axis)."""
+    return sum(f[..., None] * k for f, k in zip(lobes, factors) if f is not None)
+
+
+def _medium(material):
+    layers = material.layers
+    stack = lambda name: jnp.stack([jnp.asarray(getattr(l, name)) for l in layers])
+    t = stack("t")
+    c_d = stack("c_d")
+    if material.variant == "diffusers_only":
+        c_d = jnp.ones_like(c_d)
+    elif material.variant == "platelets_only":
+        c_d = jnp.zeros_like(c_d)
+    w_g = stack("w_g") if material.two_lobes else jnp.ones_like(t)
+    return _Medium(
+        t=t,
+        top=jnp.concatenate([jnp.zeros(1, t.dtype), jnp.cumsum(t)[:-1]]),
+        c_d=c_d,
+        albedo_d=stack("albedo_d"),
+        g1=stack("g1"),
+        g2=stack("g2"),
+        w_g=w_g,
+        albedo_p=stack("albedo_p"),
+        alpha_p=stack("alpha_p"),
+        m=P.mean_normal(stack("theta_p"), stack("phi_p")),
+        diffusers=material.has_diffusers,
+        platelets=material.has_platelets,
+        two_lobes=material.two_lobes,
+    )
+
+
+def _sigma_layers(med, w):
+    """Extinction of every layer along ``w``: ``(..., L)``."""
+    return jnp.broadcast_to(med.sigma_t(w[..., None, :]), w.shape[:-1] + (med.n_layers,))
+
+
+# --- random numbers ---------------------------------------------------------------
+
+
+def _mix(x):
+    """The 'lowbias32' integer hash (C. Wellons): a bijection of uint32 with good avalanche."""
+    x = x ^ (x >> 16)
+    x = x * jnp.uint32(0x7FEB352D)
+    x = x ^ (x >> 15)
+    x = x * jnp.uint32(0x846CA68B)
+    return x ^ (x >> 16)
+
+
+def _uniforms(seed, step, walks, n, dtype):
+    """``(walks, n)`` uniform numbers in ``[0, 1)`` for one step, from a counter-based hash.
+
+    ``seed``: two uint32 drawn from the caller's PRNG key, so the same key
+    gives the same numbers. jax.random's generators cost about 25 ns per
+    number on this project's 2-core CPU, a quarter of a whole walk; hashing the
+    counter ``(walk, stream, step)`` fuses into the step and costs ~1 ns.
+    24 random bits per number.
+    """
+    counter = jnp.arange(walks, dtype=jnp.uint32)[:, None] * jnp.uint32(n) + jnp.arange(n, dtype=jnp.uint32)
+    x = _mix(_mix(counter ^ seed[0]) + _mix(step.astype(jnp.uint32) ^ seed[1]))
+    return (x >> 8).astype(dtype) * (1.0 / 16777216.0)
+
+
+# --- one step of a walk ------------------------------------------------------------
+
+
+def _flight(med, lambertian, z, k, w, beta, u_sel, u_fl):
+    """A conditioned free flight from depth ``z`` in layer ``k`` along ``w``.
+
+    Returns the new depth and layer, the throughput multiplied by the
+    probability of the chosen outcome over its selection probability, whether
+    the walk reached the (Lambertian) base, and the energy that left through
+    the top or into the (black) base, in expectation.
+    """
+    n = med.n_layers
+    mu = w[..., 2]
+    up = mu > 0
+    amu = jnp.maximum(jnp.abs(mu), _MIN_MU)
+    sig = _sigma_layers(med, w)  # (W, L)
+    layer = jnp.arange(n)
+    bottom = med.top + med.t
+    here = layer == k[..., None]
+    ahead = jnp.where(up[..., None], layer < k[..., None], layer > k[..., None])
+    seg = jnp.where(here, jnp.where(up, z - med.top[k] if n > 1 else z, (bottom[k] if n > 1 else med.t[0]) - z)[..., None],
+                    jnp.where(ahead, med.t, 0.0))
+    seg = jnp.maximum(seg, 0.0)
+    tau = sig * seg / amu[..., None]  # (W, L)
+    tau_total = jnp.sum(tau, axis=-1)
+    leave = jnp.exp(-tau_total)
+
+    if n == 1:
+        choice, n_ahead, tau_before = jnp.zeros_like(k), 1.0, 0.0
+        tau_k, sig_k = tau[..., 0], sig[..., 0]
+        entry = z
+        lo, hi = jnp.zeros_like(z), jnp.broadcast_to(med.t[0], z.shape)
+    else:
+        csum = jnp.cumsum(tau, axis=-1)
+        before_down = csum - tau
+        before_up = tau_total[..., None] - csum
+        tau_before_all = jnp.where(up[..., None], before_up, before_down)
+        n_ahead = jnp.where(up, k + 1, n - k)
+    base = jnp.logical_and(~up, u_sel < _BASE_PROB) if lambertian else jnp.zeros_like(up)
+    if lambertian:
+        u_sel = jnp.where(up, u_sel, (u_sel - _BASE_PROB) / (1.0 - _BASE_PROB))
+    if n > 1:
+        step = jnp.minimum(jnp.floor(u_sel * n_ahead).astype(k.dtype), n_ahead - 1)
+        choice = jnp.where(up, k - step, k + step)
+        pick = lambda a: jnp.take_along_axis(a, choice[..., None], axis=-1)[..., 0]
+        tau_k, sig_k, tau_before = pick(tau), pick(sig), pick(tau_before_all)
+        lo, hi = med.top[choice], bottom[choice]
+        entry = jnp.where(choice == k, z, jnp.where(up, hi, lo))
+    p_collide = jnp.exp(-tau_before) * -jnp.expm1(-tau_k)
+    tau_star = -jnp.log1p(u_fl * jnp.expm1(-tau_k))
+    offset = tau_star * amu / sig_k
+    z_new = jnp.clip(jnp.where(up, entry - offset, entry + offset), lo, hi)
+    weight = p_collide * n_ahead
+    if lambertian:
+        weight = jnp.where(up, weight, jnp.where(base, leave, weight) / jnp.where(base, _BASE_PROB, 1.0 - _BASE_PROB))
+        z_new = jnp.where(base, jnp.sum(med.t), z_new)
+        choice = jnp.where(base, n - 1, choice)
+    escaped = jnp.where(up, leave, 0.0)[..., None] * beta
+    into_base = jnp.zeros_like(escaped) if lambertian else jnp.where(up, 0.0, leave)[..., None] * beta
+    return z_new, choice, beta * weight[..., None], base, escaped, into_base
+
+
+def lobe_probabilities(material):
+    """Lobe-selection probabilities ``(L, 3)`` (Henyey-Greenstein 1, 2, platelets) for walks in ``material``.
+
+    Proportional to each lobe's share of scattering, ``c_d w_g mean(albedo_d)``,
+    ``c_d (1 - w_g) mean(albedo_d)`` and ``(1 - c_d) mean(albedo_p) (1 + alpha_p) / 2``
+    (the last factor is roughly the mean projected area), with a floor of 0.05
+    for every lobe the variant contains, so a lobe can never be missed. They are
+    fixed numbers, not parameters: :func:`simulate` does not differentiate
+    them, and the estimate is unbiased for any of them. Holding them fixed while
+    the material changes (as a fit does) keeps the estimate under a fixed key a
+    smooth function of the parameters; recomputing them from each material
+    gives lower variance but small jumps.
+    """
+    med = _medium(jax.lax.stop_gradient(material))
+    lam_d = med.c_d * jnp.mean(med.albedo_d, axis=-1)
+    lam = jnp.stack([
+        lam_d * med.w_g if med.diffusers else jnp.zeros_like(lam_d),
+        lam_d * (1.0 - med.w_g) if med.diffusers and med.two_lobes else jnp.zeros_like(lam_d),
+        (1.0 - med.c_d) * jnp.mean(med.albedo_p, axis=-1) * 0.5 * (1.0 + med.alpha_p)
+        if med.platelets else jnp.zeros_like(lam_d),
+    ], axis=-1)
+    present = jnp.array([med.diffusers, med.diffusers and med.two_lobes, med.platelets], lam.dtype)
+    total = jnp.sum(lam, axis=-1, keepdims=True)
+    q = jnp.where(total > 1e-6, lam / jnp.where(total > 1e-6, total, 1.0), present / jnp.sum(present))
+    q = jnp.maximum(q, 0.05) * present
+    return q / jnp.sum(q, axis=-1, keepdims=True)
+
+
+def _scatter(med, q, w, u_lobe, u1, s):
+    """Sample a new direction from the lobe mixture with probabilities ``q``; return it and ``W / pdf_mix`` (RGB).
+
+    ``q``: ``(..., 3)`` probabilities of (HG ``g1``, HG ``g2``, platelets),
+    zero for the lobes the variant lacks.
+    """
+    q1, q2, qp = q[..., 0], q[..., 1], q[..., 2]
+    candidates = []
+    if med.diffusers:
+        g = jnp.where(u_lobe < q1, med.g1, med.g2) if med.two_lobes else med.g1
+        candidates.append(P.hg_sample(w, g, u1, s))
+    if med.platelets:
+        candidates.append(P.sggx_sample(w, med.m, med.alpha_p, s))
+    if len(candidates) == 1:
+        w_new = candidates[0]
+    else:
+        w_new = jnp.where((u_lobe >= q1 + q2)[..., None], candidates[1], candidates[0])
+    pdf = 0.0
+    f_1 = f_2 = None
+    if med.diffusers:
+        f_1 = P.hg(w, w_new, med.g1)
+        pdf = pdf + q1 * f_1
+        if med.two_lobes:
+            f_2 = P.hg(w, w_new, med.g2)
+            pdf = pdf + q2 * f_2
+    sig_s = f_p = None
+    if med.platelets:
+        sig_s = P.sggx_sigma(w, med.m, med.alpha_p)
+        f_p = P.flake_reflection(w, w_new, med.m, med.alpha_p)  # sigma_S(w) f_p
+        pdf = pdf + qp * f_p / sig_s
+    f_d = f_1 if f_2 is None else med.w_g * f_1 + (1.0 - med.w_g) * f_2
+    weight = _combine((f_d, f_p), med.prefactors(med.sigma_t(w, sig_s))) / jnp.maximum(pdf, 1e-30)[..., None]
+    return w_new, weight
+
+
+def _nee(med, lay, z, w, beta, wo, rate_o, inv_mu_o, sig_o):
+    """Connection of medium vertices to every outgoing direction, times throughput: ``(W, J, 3)``.
+
+    ``beta * W(w -> wo) * exp(-tau(z, wo)) / mu_o``. ``lay``: the vertex
+    layer's parameters (per walk); ``rate_o``: ``sigma_t(wo) / mu_o`` of a
+    single layer, ``(J,)``; ``sig_o``: ``(J, L)`` extinctions along ``wo``
+    (stacks). The RGB factors are formed per walk, the lobes per pair.
+    """
+    if med.n_layers == 1:
+        tau = z[:, None] * rate_o
+    else:
+        tau = med.depth_optical(sig_o, z[:, None]) * inv_mu_o
+    atten = jnp.exp(-tau) * inv_mu_o  # (W, J)
+    factors = [None if k is None else beta * k for k in lay.prefactors(lay.sigma_t(w))]
+    if med.n_layers > 1:  # per-walk parameters gain the axis of wo
+        lay = jax.tree.map(lambda a: a[:, None], lay)
+    lobes = lay.lobes(w[:, None, :], wo[None, :, :])
+    return _combine([None if f is None else f * atten for f in lobes], [None if k is None else k[:, None, :] for k in factors])
+
+
+def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first):
+    """All walks of one incidence: per-walk NEE sums ``(W, J, 3)`` and energy tallies ``(W, 3)``."""
+    dtype = wi.dtype
+    mu_o = jnp.maximum(wo[:, 2], _MIN_MU)
+    inv_mu_o = 1.0 / mu_o
+    sig_o = _sigma_layers(med, wo)  # (J, L)
+    rate_o = sig_o[:, 0] * inv_mu_o
+    total_t = jnp.sum(med.t)
+    lambertian = base_albedo is not None
+    if lambertian:
+        base_nee = (base_albedo / jnp.pi)[None, :] * jnp.exp(-med.depth_optical(sig_o, total_t) / mu_o)[:, None]
+    state = dict(
+        z=jnp.zeros(walks, dtype),
+        k=jnp.zeros(walks, jnp.int32),
+        w=jnp.broadcast_to(-wi, (walks, 3)),
+        beta=jnp.ones((walks, 3), dtype),
+        acc=jnp.zeros((walks, wo.shape[0], 3), dtype),
+        escaped=jnp.zeros((walks, 3), dtype),
+        into_base=jnp.zeros((walks, 3), dtype),
+    )
+
+    def step(s, i):
+        u = _uniforms(seed, i, walks, 6, dtype)
+        sphere = P.uniform_sphere(u[:, 4], u[:, 5])
+        z, k, beta, base, escaped, into_base = _flight(med, lambertian, s["z"], s["k"], s["w"], s["beta"], u[:, 0], u[:, 1])
+        lay = med.take(k)
+        contrib = _nee(med, lay, z, s["w"], beta, wo, rate_o, inv_mu_o, sig_o)
+        if lambertian:
+            contrib = jnp.where(base[:, None, None], beta[:, None, :] * base_nee[None], contrib)
+        count = jnp.where(jnp.logical_and(skip_first, i == 0), 0.0, 1.0).astype(dtype)
+        acc = s["acc"] + count * contrib
+        w_new, weight = _scatter(lay, q[0] if med.n_layers == 1 else q[k], s["w"], u[:, 2], u[:, 3], sphere)
+        if lambertian:
+            up = P.cosine_sample(jnp.array([0.0, 0.0, 1.0], dtype), sphere)
+            w_new = jnp.where(base[:, None], up, w_new)
+            weight = jnp.where(base[:, None], base_albedo, weight)
+        s = dict(z=z, k=k, w=w_new, beta=beta * weight, acc=acc,
+                 escaped=s["escaped"] + escaped, into_base=s["into_base"] + into_base)
+        return s, None
+
+    state, _ = jax.lax.scan(step, state, jnp.arange(bounces))
+    return state["acc"], state["escaped"], state["into_base"], state["beta"]
+
+
+# --- the exact single-scattering term ------------------------------------------------
+
+
+def _single_scattering(med, base_albedo, wi, wo):
+    """First-order BSDF ``(I, J, 3)`` in closed form (MODEL.md section 4), all layers.
+
+    The light of order one: scattered once in some layer, attenuated on the
+    way in and out, plus, over a Lambertian base, the base seen through the
+    whole stack (``rho / pi`` for a zero-thickness stack).
+    """
+    w = -wi  # (I, 3) propagation direction in
+    mu_i = wi[:, 2][:, None]  # (I, 1)
+    mu_o = jnp.maximum(wo[..., 2], _MIN_MU)  # (I, J)
+    sig_i = _sigma_layers(med, w)  # (I, L)
+    sig_o = _sigma_layers(med, wo)  # (I, J, L)
+    rate = sig_i[:, None, :] / mu_i[..., None] + sig_o / mu_o[..., None]  # (I, J, L) per unit depth
+    above = jnp.cumsum(rate * med.t, axis=-1) - rate * med.t
+    f = med.scatter(w[:, None, None, :], wo[:, :, None, :], sig_i[:, None, :])  # (I, J, L, 3): sigma_s f / sigma_t(-wi)
+    per_layer = sig_i[:, None, :] * -jnp.expm1(-rate * med.t) * jnp.exp(-above) / (
+        sig_i[:, None, :] * mu_o[..., None] + sig_o * mu_i[..., None])
+    total = jnp.sum(f * per_layer[..., None], axis=-2)
+    if base_albedo is not None:
+        through = jnp.exp(-jnp.sum(rate * med.t, axis=-1))  # (I, J)
+        total = total + through[..., None] * base_albedo / jnp.pi
+    return total
+
+
+# --- the public estimator ----------------------------------------------------------------
+
+
+class Estimate(eqx.Module):
+    """A BSDF estimate and its bookkeeping.
+
+    Attributes:
+        f: ``(N, 3)`` BSDF in 1/sr (linear RGB) at the query's pairs.
+        stderr: ``(N, 3)`` standard error of ``f`` over walks (the Monte Carlo
+            part; the exact single-scattering term has none).
+        reflected: ``(I, 3)`` energy leaving through the top per incidence
+            (directional-hemispherical reflectance, an independent estimate).
+        absorbed_base: ``(I, 3)`` energy absorbed by a black base.
+        unfinished: ``(I, 3)`` energy still carried by walks after the last bounce.
+    """
+
+    f: jnp.ndarray
+    stderr: jnp.ndarray
+    reflected: jnp.ndarray
+    absorbed_base: jnp.ndarray
+    unfinished: jnp.ndarray
+
+
+@eqx.filter_jit
+def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNCES, single_scattering="exact",
+             lobe_probs=None):
+    """Estimate the BSDF of ``material`` for a :class:`Query`.
+
+    Args:
+        material: a :class:`~jaxcos.Material`.
+        query: from :func:`make_query`.
+        key: a JAX PRNG key; the same key gives the same numbers.
+        walks: walks per incidence direction.
+        bounces: scattering events per walk (the scan length).
+        single_scattering: ``"exact"`` adds the closed-form first order and
+            lets the walks estimate orders two and up; ``"mc"`` estimates every
+            order by the walks (a check of the walk against the closed form).
+        lobe_probs: fixed lobe-selection probabilities ``(L, 3)``; by default
+            :func:`lobe_probabilities` of ``material``. Pass those of a fixed
+            reference material to make estimates under one key a smooth
+            function of the parameters (common random numbers).
+
+    Returns:
+        An :class:`Estimate`.
+    """
+    if single_scattering not in ("exact", "mc"):
+        raise ValueError(f"single_scattering must be 'exact' or 'mc', not {single_scattering!r}")
+    med = _medium(material)
+    q = lobe_probabilities(material) if lobe_probs is None else jax.lax.stop_gradient(jnp.asarray(lobe_probs))
+    exact = single_scattering == "exact"
+    seeds = jax.random.bits(key, (query.wi.shape[0], 2), jnp.uint32)
+    acc, escaped, into_base, unfinished = jax.vmap(
+        lambda wi, wo, k: _walk_one(med, material.base_albedo, q, wi, wo, k, walks, bounces, exact)
+    )(query.wi, query.wo, seeds)
+    f = jnp.mean(acc, axis=1)
+    stderr = jnp.std(acc, axis=1, ddof=1) / jnp.sqrt(walks) if walks > 1 else jnp.full_like(f, jnp.inf)
+    if exact:
+        f = f + _single_scattering(med, material.base_albedo, query.wi, query.wo)
+    pick = lambda a: a[query.pair_i, query.pair_j]
+    return Estimate(
+        f=pick(f),
+        stderr=pick(stderr),
+        reflected=jnp.mean(escaped, axis=1),
+        absorbed_base=jnp.mean(into_base, axis=1),
+        unfinished=jnp.mean(unfinished, axis=1),
+    )
+
+
+def inplane_bsdf(material, theta_i_deg, theta_o_deg, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNCES,
+                 phi_o_deg=None, single_scattering="exact"):
+    """The BSDF ``f(wi, wo)`` in 1/sr, linear RGB, shape ``(N, 3)``, at ``N`` angle pairs.
+
+    Angles in degrees, gonioreflectometer convention (MODEL.md section 1):
+    ``wi = (-sin ti, 0, cos ti)``, ``wo = (sin to cos po, sin to sin po, cos to)``;
+    ``to = ti`` is the mirror direction. Jittable, and differentiable with
+    respect to every array leaf of ``material``.
+
+    Example::
+
+        >>> import jax, jaxcos
+        >>> f = jaxcos.inplane_bsdf(jaxcos.published("matte2"), [30.0], [30.0], jax.random.key(0), walks=16)
+        >>> f.shape
+        (1, 3)
+    """
+    query = make_query(theta_i_deg, theta_o_deg, phi_o_deg)
+    return simulate(material, query, key, walks=walks, bounces=bounces, single_scattering=single_scattering).f
