@@ -23,7 +23,7 @@ def refuse_overwrite(paths, force):
 
 
 def _cmd_eval(args):
-    from ._commands import run_eval
+    from ._eval import run_eval
 
     run_eval(args)
 
@@ -93,9 +93,61 @@ def _add_plot(sub):
     p.set_defaults(func=_cmd_plot)
 
 
+# --- fit -------------------------------------------------------------------------
+
+
+def _progress(message):
+    print(f"jaxcos fit: {message}", file=sys.stderr, flush=True)
+
+
+def _cmd_fit(args):
+    from ._fit import fit
+    from ._material import VARIANTS, load_params
+    from ._measurements import load_measurements
+    from ._report import FIT_FILES, write_fit
+
+    if args.variant not in VARIANTS:
+        raise InputError(f"unknown variant {args.variant!r}; choose one of {', '.join(VARIANTS)}.")
+    refuse_overwrite([os.path.join(args.out, name) for name in FIT_FILES], args.force)
+    meas = load_measurements(args.measurements)
+    start = load_params(args.start) if args.start else None
+    result = fit(meas, variant=args.variant, method=args.method, seed=args.seed, walks=args.walks,
+                 bounces=args.bounces, starts=args.starts, fit_t=args.fit_t, fit_phi=args.fit_phi, start=start,
+                 t=args.t, progress=_progress)
+    write_fit(result, meas, args.out, force=args.force)
+    r = result.record
+    chi2 = f", reduced chi-square {r['reduced_chi2']:.2f}" if "reduced_chi2" in r else ""
+    print(f"fitted {r['variant']} to {r['n_points']} points in {r['time_s']:.1f} s: L2 {r['l2']:.4g}, "
+          f"RMSE {r['rmse']:.4g}{chi2}; {r['starts_at_optimum']} of {r['starts_refined']} refined starts agree. "
+          f"Wrote {', '.join(os.path.join(args.out, n) for n in FIT_FILES)}.")
+
+
+def _add_fit(sub):
+    from ._fit import FIT_BOUNCES, FIT_WALKS
+
+    p = sub.add_parser("fit", help="fit a layered material to a measurement CSV",
+                       description="Fit a one-layer cosmetic material to MEASUREMENTS.csv by Levenberg-Marquardt "
+                       "(or the Powell baseline) from a multi-start; writes DIR/params.json, DIR/report.md, DIR/fit.png.")
+    p.add_argument("measurements", metavar="MEASUREMENTS.csv")
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--variant", default="two_lobe",
+                   help="two_lobe (default), single_lobe, diffusers_only or platelets_only")
+    p.add_argument("--method", choices=("lm", "powell"), default="lm")
+    p.add_argument("--seed", type=int, default=0, help="seeds the Monte Carlo key and the random starts")
+    p.add_argument("--walks", type=int, default=FIT_WALKS, help=f"walks per incidence direction (default {FIT_WALKS})")
+    p.add_argument("--bounces", type=int, default=FIT_BOUNCES, help=f"bounces per walk (default {FIT_BOUNCES})")
+    p.add_argument("--starts", type=int, default=24, help="random starts screened besides the default one (default 24)")
+    p.add_argument("--start", metavar="PARAMS", help="start from this params.json instead of the multi-start")
+    p.add_argument("--t", type=float, default=16.0, help="optical thickness when it is not fitted (default 16)")
+    p.add_argument("--fit-t", action="store_true", help="also fit the optical thickness t")
+    p.add_argument("--fit-phi", action="store_true", help="also fit the tilt azimuth phi_p (default: held at 0)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing result in DIR")
+    p.set_defaults(func=_cmd_fit)
+
+
 # --- registry ----------------------------------------------------------------------
 
-_COMMANDS = [_add_eval, _add_import, _add_plot]
+_COMMANDS = [_add_eval, _add_fit, _add_import, _add_plot]
 
 
 def _parser():

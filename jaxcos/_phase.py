@@ -57,7 +57,24 @@ def uniform_sphere(u1, u2):
     return jnp.stack([r * jnp.cos(phi), r * jnp.sin(phi), z], axis=-1)
 
 
-def _around(n, cos_theta, s):
+def _any_perp(n):
+    """A unit vector normal to the unit vector ``n``: the fallback of :func:`_around` where ``s = +-n``.
+
+    (``uniform_sphere(0, .)`` is exactly ``+z``, so ``s = +-n`` does occur, e.g. at
+    normal incidence, where ``n = -z``.) Discontinuous in ``n``, which is harmless
+    at an isolated random point; finite, with finite gradients, everywhere.
+    """
+    x, y, z = n[..., 0], n[..., 1], n[..., 2]
+    zero = jnp.zeros_like(x)
+    t = jnp.where(
+        (jnp.abs(z) < 0.9)[..., None],
+        jnp.stack([-y, x, zero], axis=-1),
+        jnp.stack([zero, -z, y], axis=-1),
+    )
+    return normalize(t)
+
+
+def _around(n, cos_theta, s, sin_theta=None):
     """The direction at polar angle ``acos(cos_theta)`` about ``n``, azimuth given by ``s``.
 
     ``s`` is a uniform point on the sphere (:func:`uniform_sphere`); its
@@ -65,10 +82,13 @@ def _around(n, cos_theta, s):
     tangent frame is built: every frame field on the sphere is discontinuous
     somewhere (a branchless one along a whole great circle), and under common
     random numbers a walk crossing it would jump. This construction is
-    singular only at the isolated random point ``s = +-n``.
+    singular only at the isolated random point ``s = +-n``. ``sin_theta``, if
+    given, must equal ``sqrt(1 - cos_theta^2)``; callers that can form it without
+    the cancellation in ``1 -+ cos_theta`` near the poles should.
     """
-    perp = safe_normalize(s - dot(s, n)[..., None] * n, jnp.broadcast_to(s, n.shape))
-    sin_theta = jnp.sqrt(jnp.maximum((1.0 - cos_theta) * (1.0 + cos_theta), 1e-20))
+    perp = safe_normalize(s - dot(s, n)[..., None] * n, _any_perp(n))
+    if sin_theta is None:
+        sin_theta = jnp.sqrt(jnp.maximum((1.0 - cos_theta) * (1.0 + cos_theta), 1e-20))
     return cos_theta[..., None] * n + sin_theta[..., None] * perp
 
 
@@ -96,14 +116,30 @@ def hg_sample(w, g, u1, s):
     inverts the CDF of the cosine.
 
     The usual inverse ``(1 + g^2 - s^2) / (2 g)`` divides by ``g``; the
-    algebraically equal form used here,
-    ``c = (2 (1 + g^2) u (1 - g + g u) - (1 - g)^2) / (1 - g + 2 g u)^2``,
-    does not, so ``g = 0`` (isotropic) needs no special case.
+    algebraically equal form
+    ``c = (2 (1 + g^2) u (1 - g + g u) - (1 - g)^2) / (1 - g + 2 g u)^2``
+    does not, so ``g = 0`` (isotropic) needs no special case. That form still
+    cancels O(4) terms down to ``O(d^2)``, ``d = 1 - g + 2 g u``, where ``g -> -1``
+    and ``u -> 1`` (cosine errors of 0.2 at ``g = -0.999``), and rounding ``c`` to
+    float32 (steps of 6e-8 below 1) puts the polar angle near ``c = +-1`` on a
+    grid of ``sqrt(2k) 2.4e-4`` rad, as wide as the ``1 - |g|`` lobe at
+    ``|g| = 0.999``. So, with ``a = |g|`` and ``f_HG(c; -a) = f_HG(-c; a)``
+    (i.e. ``c(u; -a) = -c(1 - u; a)``), ``1 - c`` and ``1 + c`` are formed as
+    products of sums of non-negative terms,
+    ``2 (1 -+ a)^2 (1 - u or u) (1 + a u or 1 - a + a u) / d^2`` with
+    ``d = 1 - a + 2 a u``, and the sine as the square root of their product.
     """
-    denom = 1.0 - g + 2.0 * g * u1
-    cos_theta = (2.0 * (1.0 + g * g) * u1 * (1.0 - g + g * u1) - (1.0 - g) ** 2) / (denom * denom)
-    cos_theta = jnp.clip(cos_theta, -1.0, 1.0)
-    return _around(w, cos_theta, s)
+    sign = jnp.where(g >= 0, 1.0, -1.0)
+    a = sign * g  # |g|, with derivative sign(g) (+1 at g = 0)
+    u = jnp.where(g >= 0, u1, 1.0 - u1)
+    d = (1.0 - a) + 2.0 * a * u
+    dd = d * d
+    one_minus_c = 2.0 * (1.0 - a) ** 2 * (1.0 - u) * (1.0 + a * u) / dd
+    one_plus_c = 2.0 * (1.0 + a) ** 2 * u * ((1.0 - a) + a * u) / dd
+    cos_a = jnp.where(one_minus_c < one_plus_c, 1.0 - one_minus_c, one_plus_c - 1.0)
+    prod = u * (1.0 - u) * (1.0 + a * u) * ((1.0 - a) + a * u)
+    sin_theta = 2.0 * (1.0 - a) * (1.0 + a) * jnp.sqrt(jnp.maximum(prod, 1e-30)) / dd
+    return _around(w, sign * cos_a, s, sin_theta)
 
 
 # --- SGGX specular platelets ---------------------------------------------------
@@ -158,8 +194,11 @@ def flake_reflection(w, w_out, m, alpha):
     n2 = dot(d, d)
     dm = dot(d, m)
     ok = n2 > 1e-12
-    q = jnp.where(ok, _cross2(d, m) + alpha * alpha * dm * dm, 1.0)
-    return jnp.where(ok, alpha * alpha * (n2 * n2) / (4.0 * jnp.pi * q * q), 0.0)
+    # q / |d|^2 lies in [alpha^2, 1] (up to rounding): dividing before squaring keeps the
+    # gradient's 1 / q^2 from overflowing float32 (q^2 underflows at the mirror peak for
+    # grazing incidence and small alpha: q ~ alpha^2 |d|^2 ~ 1e-13 at alpha = 1e-4).
+    q = jnp.where(ok, (_cross2(d, m) + alpha * alpha * dm * dm) / jnp.where(ok, n2, 1.0), 1.0)
+    return jnp.where(ok, alpha * alpha / (4.0 * jnp.pi * q * q), 0.0)
 
 
 def specular_phase(w, w_out, m, alpha):
@@ -183,8 +222,12 @@ def sggx_sample(w, m, alpha, s):
     """
     alpha = jnp.broadcast_to(alpha, s.shape[:-1])
     k = normalize(_sqrt_s(-w, m, alpha))
-    v = cosine_sample(k, s)
-    n = normalize(_sqrt_s(v, m, alpha))
+    # v = k + s (cosine_sample(k, s) before its normalisation): n depends only on the
+    # direction of v. Normalising v first made k + s, which nearly cancels where v grazes
+    # the horizon of k, be rounded differently in the XLA fusions that recompute it, and
+    # n is ill-conditioned there (d n / d v ~ 1 / alpha): jitted samples came out with
+    # norms up to 1.3 at alpha = 1e-4 (1e-3 at alpha = 0.002).
+    n = safe_normalize(_sqrt_s(k + s, m, alpha), m)
     return w - (2.0 * dot(w, n))[..., None] * n
 
 

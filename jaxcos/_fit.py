@@ -1,0 +1,396 @@
+"""Fitting a material to measurements: Levenberg-Marquardt (optimistix) and a Powell baseline.
+
+The objective is the sum of squared residuals ``(model - measured) / std``
+(``std = 1`` when the file has no standard deviations), in the file's own
+quantity, over every measured point and colour channel. The model is the
+Monte Carlo BSDF under a fixed key and fixed lobe-selection probabilities
+(common random numbers), so the objective is a deterministic, smooth function
+of the parameters and its Jacobian comes from forward-mode differentiation of
+the walk.
+
+Parameters are mapped to unbounded coordinates so every iterate is physical:
+``c_d``, ``w_g`` and albedos by a logistic function onto ``(0, 1)``, ``g1``,
+``g2`` by ``tanh`` onto ``(-0.9999, 0.9999)``, ``alpha_p`` onto ``(1e-4, 1)``, ``theta_p``
+onto ``(0, 90)`` degrees, ``t`` by ``exp``, ``phi_p`` by ``180 tanh``.
+
+Example::
+
+    import jaxcos
+    meas = jaxcos.load_measurements("measurements/dewy1.csv")
+    result = jaxcos.fit(meas)
+    result.material, result.record["reduced_chi2"]
+"""
+
+import dataclasses
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ._errors import InputError
+from ._material import VARIANTS, Layer, Material
+from ._walk import lobe_probabilities, make_query, simulate
+
+FIT_WALKS = 256
+"""Walks per incidence direction in a fit. At 128 walks the Monte Carlo error
+of a point is about 4% (twice a 2% measurement noise); the fit puts that
+error into the likelihood (see :func:`fit`) and reports it."""
+FIT_BOUNCES = 128
+"""Bounces per walk in a fit: at most 3.7e-3 of the energy is left in
+unfinished walks for the four published products (256 bounces: 2.2e-5), at
+half the cost; every fit reports what its walks left unfinished."""
+
+# Free parameters of each variant, in order; sizes follow.
+_FREE = {
+    "two_lobe": ("c_d", "albedo_d", "g1", "g2", "w_g", "albedo_p", "alpha_p", "theta_p"),
+    "single_lobe": ("c_d", "albedo_d", "g1", "albedo_p", "alpha_p", "theta_p"),
+    "diffusers_only": ("albedo_d", "g1", "g2", "w_g"),
+    "platelets_only": ("albedo_p", "alpha_p", "theta_p"),
+}
+_SIZE = {"albedo_d": 3, "albedo_p": 3}
+
+# Default values of the parameters a variant does not fit, and the default start.
+_DEFAULT = dict(t=16.0, c_d=0.7, albedo_d=(0.8, 0.8, 0.8), g1=0.5, g2=-0.2, w_g=0.7,
+                albedo_p=(0.8, 0.8, 0.8), alpha_p=0.2, theta_p=2.0, phi_p=0.0)
+_VARIANT_FIXED = {"two_lobe": {}, "single_lobe": {"w_g": 1.0, "g2": 0.0},
+                  "diffusers_only": {"c_d": 1.0}, "platelets_only": {"c_d": 0.0}}
+_EPS = 1e-5
+_G_MAX = 0.9999  # |g| = 1 is a delta function: the map keeps float32 iterates off it
+_ALPHA_MIN = 1e-4  # alpha_p = 0 is a mirror with no width
+
+
+def _unit_to_x(v):
+    v = np.clip(np.asarray(v, float), _EPS, 1 - _EPS)
+    return np.log(v) - np.log1p(-v)
+
+
+_TRANSFORMS = {
+    # name: (x -> value, value -> x)
+    "c_d": (jax.nn.sigmoid, _unit_to_x),
+    "w_g": (jax.nn.sigmoid, _unit_to_x),
+    "albedo_d": (jax.nn.sigmoid, _unit_to_x),
+    "albedo_p": (jax.nn.sigmoid, _unit_to_x),
+    "alpha_p": (lambda x: _ALPHA_MIN + (1.0 - _ALPHA_MIN) * jax.nn.sigmoid(x),
+                lambda v: _unit_to_x((np.asarray(v) - _ALPHA_MIN) / (1.0 - _ALPHA_MIN))),
+    "g1": (lambda x: _G_MAX * jnp.tanh(x), lambda v: np.arctanh(np.clip(np.asarray(v) / _G_MAX, -1 + _EPS, 1 - _EPS))),
+    "g2": (lambda x: _G_MAX * jnp.tanh(x), lambda v: np.arctanh(np.clip(np.asarray(v) / _G_MAX, -1 + _EPS, 1 - _EPS))),
+    "theta_p": (lambda x: 90.0 * jax.nn.sigmoid(x), lambda v: _unit_to_x(np.asarray(v) / 90.0)),
+    "t": (jnp.exp, lambda v: np.log(np.maximum(v, _EPS))),
+    "phi_p": (lambda x: 180.0 * jnp.tanh(x), lambda v: np.arctanh(np.clip(np.asarray(v) / 180.0, -1 + _EPS, 1 - _EPS))),
+}
+
+
+class Parameterization(eqx.Module):
+    """The map between an unbounded vector ``x`` and a one-layer :class:`Material` of a variant.
+
+    Attributes:
+        variant: the model variant (static).
+        names: the fitted parameters in order (static); ``t`` and ``phi_p``
+            are included when asked for.
+        fixed: the values of the parameters that are not fitted.
+    """
+
+    variant: str = eqx.field(static=True)
+    names: tuple = eqx.field(static=True)
+    fixed: dict
+
+    @property
+    def size(self):
+        return sum(_SIZE.get(n, 1) for n in self.names)
+
+    def labels(self):
+        """One label per entry of ``x``, e.g. ``albedo_d[0]``."""
+        out = []
+        for n in self.names:
+            out += [f"{n}[{i}]" for i in range(_SIZE[n])] if n in _SIZE else [n]
+        return out
+
+    def to_material(self, x):
+        values = dict(self.fixed)
+        i = 0
+        for n in self.names:
+            k = _SIZE.get(n, 1)
+            v = _TRANSFORMS[n][0](x[i:i + k])
+            values[n] = v if k > 1 else v[0]
+            i += k
+        return Material(layers=(Layer(**values),), variant=self.variant)
+
+    def from_material(self, material):
+        layer = material.layers[0]
+        parts = [np.atleast_1d(_TRANSFORMS[n][1](np.asarray(getattr(layer, n)))) for n in self.names]
+        return jnp.asarray(np.concatenate(parts), dtype=jnp.result_type(float))
+
+
+def parameterization(variant="two_lobe", *, fit_t=False, fit_phi=False, template=None):
+    """The :class:`Parameterization` of ``variant``; non-fitted values come from ``template`` or the defaults."""
+    if variant not in VARIANTS:
+        raise InputError(f"unknown variant {variant!r}; choose one of {', '.join(VARIANTS)}.")
+    names = _FREE[variant] + (("t",) if fit_t else ()) + (("phi_p",) if fit_phi else ())
+    base = dict(_DEFAULT)
+    if template is not None:
+        layer = template.layers[0]
+        base.update({k: np.asarray(getattr(layer, k)) for k in _DEFAULT})
+    base.update(_VARIANT_FIXED[variant])
+    fixed = {k: jnp.asarray(v, dtype=jnp.result_type(float)) for k, v in base.items() if k not in names}
+    return Parameterization(variant=variant, names=names, fixed=fixed)
+
+
+def _check_variant(variant):
+    if variant not in VARIANTS:
+        raise InputError(f"unknown variant {variant!r}; choose one of {', '.join(VARIANTS)}.")
+
+
+# --- the objective ----------------------------------------------------------------
+
+
+class Problem(eqx.Module):
+    """Everything the residuals need: the data, the query, the budget, the key.
+
+    ``residuals(x)`` are ``(model - measured) / std``, flattened over points
+    and channels; ``model`` is in the file's quantity.
+    """
+
+    param: Parameterization
+    query: object
+    measured: jnp.ndarray
+    sigma: jnp.ndarray
+    scale: float = eqx.field(static=True)
+    key: jnp.ndarray
+    lobe_probs: jnp.ndarray
+    walks: int = eqx.field(static=True)
+    bounces: int = eqx.field(static=True)
+
+    def model(self, x):
+        """The model in the file's quantity, ``(N, 3)``."""
+        est = simulate(self.param.to_material(x), self.query, self.key, walks=self.walks,
+                       bounces=self.bounces, lobe_probs=self.lobe_probs)
+        return self.scale * est.f
+
+    def residuals(self, x):
+        return _residuals(self, x)
+
+    def loss(self, x):
+        r = self.residuals(x)
+        return jnp.sum(r * r)
+
+
+@jax.custom_jvp
+def _residuals(problem, x):
+    return ((problem.model(x) - problem.measured) / problem.sigma).reshape(-1)
+
+
+@_residuals.defjvp
+def _residuals_jvp(primals, tangents):
+    # The Jacobian by batched forward mode, materialised once: linearising the
+    # walk instead would store every bounce's intermediates (gigabytes).
+    problem, x = primals
+    _, dx = tangents
+    fn = lambda v: _residuals.fun(problem, v)
+    y, jac = jax.vmap(lambda e: jax.jvp(fn, (x,), (e,)), out_axes=(None, -1))(jnp.eye(x.shape[0], dtype=x.dtype))
+    return y, jac @ dx
+
+
+def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe_probs=None, reference=None):
+    """The least-squares :class:`Problem` of fitting ``param`` to measurements ``meas``.
+
+    ``lobe_probs`` are held fixed during the fit (common random numbers); by
+    default they are those of ``reference`` (a material) or of the default start.
+    """
+    if lobe_probs is None:
+        lobe_probs = lobe_probabilities(reference if reference is not None else param.to_material(jnp.zeros(param.size)))
+    dtype = jnp.result_type(float)
+    sigma = np.ones_like(meas.values) if meas.std is None else np.asarray(meas.std)
+    if np.any(sigma <= 0):
+        raise InputError(f"{meas.path}: every standard deviation must be positive to weight a fit.")
+    return Problem(
+        param=param,
+        query=make_query(meas.theta_i, meas.theta_o, meas.phi_o),
+        measured=jnp.asarray(meas.values, dtype),
+        sigma=jnp.asarray(sigma, dtype),
+        scale=float(np.pi) if meas.quantity == "reflectance_factor" else 1.0,
+        key=key,
+        lobe_probs=jnp.asarray(lobe_probs, dtype),
+        walks=walks,
+        bounces=bounces,
+    )
+
+
+# --- solvers ----------------------------------------------------------------------
+
+
+@eqx.filter_jit
+def _lm(problem, x0, max_steps, rtol, atol):
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    sol = optx.least_squares(lambda x, p: p.residuals(x), solver, x0, args=problem, max_steps=max_steps, throw=False)
+    return sol.value, problem.loss(sol.value), sol.stats["num_steps"]
+
+
+def solve_lm(problem, x0, *, max_steps=60, rtol=1e-4, atol=1e-5):
+    """Levenberg-Marquardt from ``x0``; returns ``(x, loss, steps)``."""
+    x, loss, steps = _lm(problem, x0, max_steps, rtol, atol)
+    return x, float(loss), int(steps)
+
+
+def solve_powell(problem, x0, *, max_evaluations=20000, xtol=1e-4, ftol=1e-8):
+    """SciPy's modified Powell on the same objective (the paper's method); returns ``(x, loss, evaluations)``."""
+    from scipy.optimize import minimize
+
+    loss = jax.jit(problem.loss)
+    res = minimize(lambda x: float(loss(jnp.asarray(x, dtype=jnp.result_type(float)))), np.asarray(x0, float),
+                   method="Powell", options=dict(maxfev=max_evaluations, xtol=xtol, ftol=ftol))
+    return jnp.asarray(res.x, dtype=jnp.result_type(float)), float(res.fun), int(res.nfev)
+
+
+# --- starts -----------------------------------------------------------------------
+
+
+def random_starts(param, n, rng):
+    """``n`` starting vectors drawn uniformly over the physical ranges (``alpha_p`` log-uniformly)."""
+    draws = []
+    for _ in range(n):
+        values = dict(
+            c_d=rng.uniform(0.05, 0.95), albedo_d=rng.uniform(0.3, 0.99, 3), g1=rng.uniform(-0.3, 0.9),
+            g2=rng.uniform(-0.6, 0.3), w_g=rng.uniform(0.2, 0.95), albedo_p=rng.uniform(0.3, 0.99, 3),
+            alpha_p=10 ** rng.uniform(-2.5, 0), theta_p=rng.uniform(0, 30), t=rng.uniform(1, 30), phi_p=0.0,
+        )
+        draws.append(np.concatenate([np.atleast_1d(_TRANSFORMS[n_][1](values[n_])) for n_ in param.names]))
+    return jnp.asarray(np.stack(draws), dtype=jnp.result_type(float))
+
+
+@dataclasses.dataclass
+class FitResult:
+    """The outcome of :func:`fit`.
+
+    Attributes:
+        material: the fitted material.
+        record: the ``"fit"`` record of FORMATS.md (plus extra keys).
+        model: ``(N, 3)`` the fitted model in the file's quantity.
+        model_std: ``(N, 3)`` its Monte Carlo standard error.
+        starts: per refined start, ``(start index, loss)``.
+        x: the fitted unbounded coordinates; ``param`` maps them.
+    """
+
+    material: Material
+    record: dict
+    model: np.ndarray
+    model_std: np.ndarray
+    starts: list
+    x: jnp.ndarray
+    param: Parameterization
+    problem: Problem
+
+
+def with_mc_error(problem, meas, x):
+    """``problem`` with lobe probabilities and Monte Carlo error taken at ``x``, both then held fixed.
+
+    The weights become ``1 / sqrt(std^2 + s_mc^2)``: with a fixed key the
+    Monte Carlo error is an offset as large as a noise, and counting it as
+    information would inflate the chi-square. ``s_mc = r |model|``, with ``r``
+    the median relative standard error over the points at ``x``: a per-point
+    standard error would come from the same walks as the error itself (a
+    point the walks overestimate also gets a large standard error) and the
+    weights would bias the fit. Files without std columns stay unweighted.
+    """
+    material = problem.param.to_material(x)
+    lobe_probs = lobe_probabilities(material)
+    if meas.std is None:
+        return dataclasses.replace(problem, lobe_probs=lobe_probs)
+    est = simulate(material, problem.query, problem.key, walks=problem.walks, bounces=problem.bounces,
+                   lobe_probs=lobe_probs)
+    rel = jnp.median(est.stderr / jnp.maximum(jnp.abs(est.f), 1e-12))
+    sigma = jnp.sqrt(jnp.asarray(meas.std, problem.sigma.dtype) ** 2 + (rel * problem.scale * est.f) ** 2)
+    return dataclasses.replace(problem, lobe_probs=lobe_probs, sigma=sigma)
+
+
+def _statistics(meas, model, loss, n_free):
+    resid = model - meas.values
+    n = resid.size
+    dof = max(n - n_free, 1)
+    stats = dict(loss=float(loss), l2=float(np.sum(resid ** 2)), rmse=float(np.sqrt(np.mean(resid ** 2))),
+                 n_points=int(meas.values.shape[0]))
+    if meas.std is not None:
+        stats["reduced_chi2"] = float(loss / dof)
+        stats["reduced_chi2_noise_only"] = float(np.sum((resid / meas.std) ** 2) / dof)
+    return stats
+
+
+def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounces=FIT_BOUNCES, starts=24,
+        refine=2, fit_t=False, fit_phi=False, start=None, t=16.0, progress=None):
+    """Fit a one-layer material of ``variant`` to the measurements ``meas``.
+
+    Args:
+        meas: from :func:`jaxcos.load_measurements`.
+        variant: one of :data:`jaxcos.VARIANTS`.
+        method: ``"lm"`` (Levenberg-Marquardt, optimistix) or ``"powell"`` (SciPy).
+        seed: seeds the Monte Carlo key (fixed for the whole fit) and the random starts.
+        walks, bounces: the Monte Carlo budget of the objective.
+        starts: number of random starts screened, besides the default start.
+        refine: number of best screened starts refined at the full budget.
+        fit_t, fit_phi: also fit the optical thickness ``t`` (else fixed at ``t``)
+            or the tilt azimuth ``phi_p`` (else 0).
+        start: a :class:`Material` to start from instead of the multi-start
+            (only that start is refined).
+        t: the optical thickness when it is not fitted (the paper's protocol: 16).
+        progress: a callable ``progress(message)`` told about each stage.
+
+    Returns:
+        A :class:`FitResult`.
+    """
+    _check_variant(variant)
+    if method not in ("lm", "powell"):
+        raise InputError(f"unknown method {method!r}; choose 'lm' or 'powell'.")
+    say = progress or (lambda msg: None)
+    t0 = time.perf_counter()
+    template = start if start is not None else Material(layers=(Layer(**{**_DEFAULT, "t": t}),))
+    param = parameterization(variant, fit_t=fit_t, fit_phi=fit_phi, template=template)
+    key = jax.random.key(seed)
+    x_default = param.from_material(template)
+    problem = make_problem(meas, param, key=key, walks=walks, bounces=bounces, reference=param.to_material(x_default))
+
+    if start is not None:
+        candidates = [(0, x_default)]
+    else:
+        rng = np.random.default_rng(seed)
+        pool = jnp.concatenate([x_default[None], random_starts(param, starts, rng)])
+        screen = dataclasses.replace(problem, walks=max(walks // 4, 8), bounces=max(bounces // 4, 16))  # 1/16 cost
+        say(f"screening {pool.shape[0]} starts with a short Levenberg-Marquardt at a quarter budget")
+        xs, losses, _ = jax.vmap(lambda x: _lm(screen, x, 6, 1e-3, 1e-3))(pool)
+        losses = np.where(np.isfinite(np.asarray(losses)), np.asarray(losses), np.inf)
+        order = np.argsort(losses)[:refine]
+        candidates = [(int(i), xs[i]) for i in order]
+
+    results = []
+    n_eval = 0
+    for rank, (index, x0) in enumerate(candidates):
+        say(f"refining start {rank + 1} of {len(candidates)} ({method})")
+        prob = with_mc_error(problem, meas, x0)
+        if method == "lm":
+            x, loss, steps = solve_lm(prob, x0)
+            n_eval += (steps + 1) * (param.size + 1)
+        else:
+            x, loss, steps = solve_powell(prob, x0)
+            n_eval += steps
+        results.append((index, x, loss, steps, prob))
+    index, x, loss, steps, problem = min(results, key=lambda r: r[2])
+    est = simulate(param.to_material(x), problem.query, key, walks=walks, bounces=bounces,
+                   lobe_probs=problem.lobe_probs)
+    model = np.asarray(problem.scale * est.f)
+    model_std = np.asarray(problem.scale * est.stderr)
+    elapsed = time.perf_counter() - t0
+    record = _statistics(meas, model, loss, param.size)
+    same = [r for r in results if abs(r[2] - loss) <= 1e-3 * loss + 1.0]
+    record.update(
+        iterations=int(steps), time_s=round(elapsed, 2), method=method, variant=variant, n_evaluations=int(n_eval),
+        walks=int(walks), bounces=int(bounces), seed=int(seed), n_params=int(param.size),
+        fitted=list(param.names), starts_refined=len(results), starts_at_optimum=len(same),
+        unfinished_energy=float(np.max(np.asarray(est.unfinished))),
+        mc_error_median=float(np.median(model_std / (meas.std if meas.std is not None else 1.0))),
+    )
+    starts_summary = [(int(r[0]), float(r[2])) for r in results]
+    record["reduced_chi2_note"] = ("reduced_chi2 weights residuals by sqrt(std^2 + mc^2), the measurement noise and "
+                                   "the model's Monte Carlo error; reduced_chi2_noise_only by std alone.")
+    return FitResult(material=param.to_material(x), record=record, model=model, model_std=model_std,
+                     starts=starts_summary, x=x, param=param, problem=problem)

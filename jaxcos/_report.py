@@ -1,0 +1,128 @@
+"""What a fit leaves behind: ``params.json``, ``report.md`` and ``fit.png``.
+
+Example::
+
+    import jaxcos
+    meas = jaxcos.load_measurements("measurements/dewy1.csv")
+    jaxcos.write_fit(jaxcos.fit(meas), meas, "out/dewy1")
+"""
+
+import os
+import shutil
+import tempfile
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from ._errors import InputError
+from ._material import material_to_dict, save_params
+from ._plot import default_exposure, draw_reflectance
+
+FIT_FILES = ("params.json", "report.md", "fit.png")
+DIFFERENCE_GAIN = 4.0
+"""The difference panel of ``fit.png`` shows ``|fitted - measured|`` at this many times the exposure."""
+
+
+def fit_figure(meas, model, path, *, exposure=None):
+    """Save measured, fitted and ``|difference|`` tables side by side (Figure-4 style) to ``path``."""
+    k = default_exposure(meas.values) if exposure is None else exposure
+    fig = Figure(figsize=(15, 4.2), constrained_layout=True)
+    axes = fig.subplots(1, 3)
+    unit = "reflectance factor" if meas.quantity == "reflectance_factor" else "BRDF (1/sr)"
+    panels = [(meas.values, f"measured ({unit}), exposure {k:.3g}"),
+              (model, f"fitted, exposure {k:.3g}"),
+              (np.abs(model - meas.values), f"|fitted - measured|, exposure {DIFFERENCE_GAIN * k:.3g}")]
+    for ax, (values, title) in zip(axes, panels):
+        gain = DIFFERENCE_GAIN if values is panels[2][0] else 1.0
+        draw_reflectance(ax, meas.theta_i, meas.theta_o, values, exposure=gain * k, title=title)
+    fig.savefig(path, dpi=110)
+
+
+def _fmt(v):
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "(" + ", ".join(f"{float(x):.4g}" for x in np.ravel(v)) + ")"
+    return f"{float(v):.4g}"
+
+
+def fit_report(result, meas):
+    """The human-readable ``report.md`` of a :class:`~jaxcos.FitResult`."""
+    r = result.record
+    layer = material_to_dict(result.material)["layers"][0]
+    lines = [
+        f"# Fit of {os.path.basename(meas.path) or 'measurements'}",
+        "",
+        f"Variant `{r['variant']}`, method `{r['method']}`, {r['n_points']} points x 3 channels, "
+        f"{r['n_params']} fitted parameters ({', '.join(r['fitted'])}), seed {r['seed']}.",
+        "",
+        "## Quality",
+        "",
+        "| quantity | value |",
+        "|---|---|",
+        f"| loss (objective minimised) | {r['loss']:.6g} |",
+        f"| L2 (paper's metric: sum of squared differences, file's quantity) | {r['l2']:.6g} |",
+        f"| RMSE | {r['rmse']:.4g} |",
+    ]
+    if "reduced_chi2" in r:
+        lines += [f"| reduced chi-square (noise and Monte Carlo error) | {r['reduced_chi2']:.3f} |",
+                  f"| reduced chi-square (measurement noise only) | {r['reduced_chi2_noise_only']:.3f} |"]
+    lines += [
+        f"| iterations (best start) | {r['iterations']} |",
+        f"| forward evaluations (a Jacobian counts as parameters + 1) | {r['n_evaluations']} |",
+        f"| time | {r['time_s']:.1f} s |",
+        "",
+        "## Parameters",
+        "",
+        "| parameter | value |",
+        "|---|---|",
+    ]
+    for key, value in layer.items():
+        mark = "" if key.replace("_deg", "") in r["fitted"] else " (fixed)"
+        lines.append(f"| `{key}` | {_fmt(value)}{mark} |")
+    if "phi_p_deg" not in layer:
+        lines.append(f"| `phi_p_deg` | 0{'' if 'phi_p' in r['fitted'] else ' (fixed: tilt in the plane of incidence)'} |")
+    lines += [
+        "",
+        "## Starts",
+        "",
+        f"{r['starts_at_optimum']} of {r['starts_refined']} refined starts reached the best optimum "
+        "(loss within 0.1% + 1):",
+        "",
+        "| start (0 = default) | final loss |",
+        "|---|---|",
+    ] + [f"| {i} | {loss:.6g} |" for i, loss in result.starts] + [
+        "",
+        "## Monte Carlo budget",
+        "",
+        f"{r['walks']} walks per incidence direction, {r['bounces']} bounces per walk, one fixed key "
+        "(common random numbers). Energy left in unfinished walks: at most "
+        f"{r['unfinished_energy']:.2g} of the incident energy.",
+    ]
+    if meas.std is not None:
+        lines.append(f"Median Monte Carlo standard error of the model relative to the measurement std: "
+                     f"{r['mc_error_median']:.2f}; the fit weights each residual by the two combined.")
+    else:
+        lines.append(f"Median Monte Carlo standard error of the model: {r['mc_error_median']:.3g} (the file has no std).")
+    lines += ["", "![measured, fitted and difference](fit.png)", ""]
+    return "\n".join(lines)
+
+
+def write_fit(result, meas, out_dir, *, force=False):
+    """Write ``params.json`` (with its ``"fit"`` record), ``report.md`` and ``fit.png`` under ``out_dir``.
+
+    Everything is written into a temporary folder first and moved in at the
+    end, so a failure leaves nothing half-written. Existing files are kept
+    unless ``force``.
+    """
+    targets = [os.path.join(out_dir, name) for name in FIT_FILES]
+    for path in targets:
+        if os.path.exists(path) and not force:
+            raise InputError(f"{path}: already exists; pass --force to overwrite it.")
+    os.makedirs(out_dir, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=out_dir, prefix=".jaxcos-") as tmp:
+        save_params(result.material, os.path.join(tmp, "params.json"), extra={"fit": result.record})
+        with open(os.path.join(tmp, "report.md"), "w", encoding="utf-8") as fh:
+            fh.write(fit_report(result, meas))
+        fit_figure(meas, result.model, os.path.join(tmp, "fit.png"))
+        for name, path in zip(FIT_FILES, targets):
+            shutil.move(os.path.join(tmp, name), path)
+    return targets
