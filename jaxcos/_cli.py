@@ -96,8 +96,12 @@ def _add_plot(sub):
 # --- fit -------------------------------------------------------------------------
 
 
-def _progress(message):
-    print(f"jaxcos fit: {message}", file=sys.stderr, flush=True)
+def _progress(message, _start=[]):
+    import time
+
+    if not _start:
+        _start.append(time.perf_counter())
+    print(f"jaxcos fit [{time.perf_counter() - _start[0]:6.1f} s]: {message}", file=sys.stderr, flush=True)
 
 
 def _cmd_fit(args):
@@ -136,7 +140,7 @@ def _add_fit(sub):
     p.add_argument("--seed", type=int, default=0, help="seeds the Monte Carlo key and the random starts")
     p.add_argument("--walks", type=int, default=FIT_WALKS, help=f"walks per incidence direction (default {FIT_WALKS})")
     p.add_argument("--bounces", type=int, default=FIT_BOUNCES, help=f"bounces per walk (default {FIT_BOUNCES})")
-    p.add_argument("--starts", type=int, default=24, help="random starts screened besides the default one (default 24)")
+    p.add_argument("--starts", type=int, default=15, help="random starts screened besides the default one (default 15)")
     p.add_argument("--start", metavar="PARAMS", help="start from this params.json instead of the multi-start")
     p.add_argument("--t", type=float, default=16.0, help="optical thickness when it is not fitted (default 16)")
     p.add_argument("--fit-t", action="store_true", help="also fit the optical thickness t")

@@ -228,7 +228,7 @@ def _lm(problem, x0, max_steps, rtol, atol):
     return sol.value, problem.loss(sol.value), sol.stats["num_steps"]
 
 
-def solve_lm(problem, x0, *, max_steps=60, rtol=1e-4, atol=1e-5):
+def solve_lm(problem, x0, *, max_steps=40, rtol=1e-4, atol=1e-5):
     """Levenberg-Marquardt from ``x0``; returns ``(x, loss, steps)``."""
     x, loss, steps = _lm(problem, x0, max_steps, rtol, atol)
     return x, float(loss), int(steps)
@@ -238,7 +238,7 @@ def solve_powell(problem, x0, *, max_evaluations=20000, xtol=1e-4, ftol=1e-8):
     """SciPy's modified Powell on the same objective (the paper's method); returns ``(x, loss, evaluations)``."""
     from scipy.optimize import minimize
 
-    loss = jax.jit(problem.loss)
+    loss = jax.jit(lambda x: problem.loss(x))
     res = minimize(lambda x: float(loss(jnp.asarray(x, dtype=jnp.result_type(float)))), np.asarray(x0, float),
                    method="Powell", options=dict(maxfev=max_evaluations, xtol=xtol, ftol=ftol))
     return jnp.asarray(res.x, dtype=jnp.result_type(float)), float(res.fun), int(res.nfev)
@@ -317,7 +317,7 @@ def _statistics(meas, model, loss, n_free):
     return stats
 
 
-def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounces=FIT_BOUNCES, starts=24,
+def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounces=FIT_BOUNCES, starts=15,
         refine=2, fit_t=False, fit_phi=False, start=None, t=16.0, progress=None):
     """Fit a one-layer material of ``variant`` to the measurements ``meas``.
 
@@ -357,7 +357,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         pool = jnp.concatenate([x_default[None], random_starts(param, starts, rng)])
         screen = dataclasses.replace(problem, walks=max(walks // 4, 8), bounces=max(bounces // 4, 16))  # 1/16 cost
         say(f"screening {pool.shape[0]} starts with a short Levenberg-Marquardt at a quarter budget")
-        xs, losses, _ = jax.vmap(lambda x: _lm(screen, x, 6, 1e-3, 1e-3))(pool)
+        xs, losses, _ = jax.vmap(lambda x: _lm(screen, x, 5, 1e-3, 1e-3))(pool)
         losses = np.where(np.isfinite(np.asarray(losses)), np.asarray(losses), np.inf)
         order = np.argsort(losses)[:refine]
         candidates = [(int(i), xs[i]) for i in order]
@@ -374,6 +374,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
             x, loss, steps = solve_powell(prob, x0)
             n_eval += steps
         results.append((index, x, loss, steps, prob))
+    say("evaluating the fitted model")
     index, x, loss, steps, problem = min(results, key=lambda r: r[2])
     est = simulate(param.to_material(x), problem.query, key, walks=walks, bounces=bounces,
                    lobe_probs=problem.lobe_probs)

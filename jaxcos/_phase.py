@@ -194,9 +194,10 @@ def flake_reflection(w, w_out, m, alpha):
     n2 = dot(d, d)
     dm = dot(d, m)
     ok = n2 > 1e-12
-    # q / |d|^2 lies in [alpha^2, 1] (up to rounding): dividing before squaring keeps the
-    # gradient's 1 / q^2 from overflowing float32 (q^2 underflows at the mirror peak for
-    # grazing incidence and small alpha: q ~ alpha^2 |d|^2 ~ 1e-13 at alpha = 1e-4).
+    # q / |d|^2 lies in [alpha^2, 1] (up to rounding). Without that division the value is
+    # alpha^2 |d|^4 / (4 pi q^2), whose gradient forms q^4: at the mirror peak under grazing
+    # incidence q ~ alpha^2 |d|^2 ~ 1e-13 (alpha = 1e-4, w.m = 1.7e-3), q^4 underflows
+    # float32 and the gradient was inf / nan.
     q = jnp.where(ok, (_cross2(d, m) + alpha * alpha * dm * dm) / jnp.where(ok, n2, 1.0), 1.0)
     return jnp.where(ok, alpha * alpha / (4.0 * jnp.pi * q * q), 0.0)
 

@@ -29,9 +29,7 @@ def fit_figure(meas, model, path, *, exposure=None):
     fig = Figure(figsize=(15, 4.2), constrained_layout=True)
     axes = fig.subplots(1, 3)
     unit = "reflectance factor" if meas.quantity == "reflectance_factor" else "BRDF (1/sr)"
-    panels = [(meas.values, f"measured ({unit}), exposure {k:.3g}"),
-              (model, f"fitted, exposure {k:.3g}"),
-              (np.abs(model - meas.values), f"|fitted - measured|, exposure {DIFFERENCE_GAIN * k:.3g}")]
+    panels = [(meas.values, f"measured ({unit})"), (model, "fitted"), (np.abs(model - meas.values), "|fitted - measured|")]
     for ax, (values, title) in zip(axes, panels):
         gain = DIFFERENCE_GAIN if values is panels[2][0] else 1.0
         draw_reflectance(ax, meas.theta_i, meas.theta_o, values, exposure=gain * k, title=title)

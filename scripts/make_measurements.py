@@ -38,9 +38,12 @@ polynomial in wavelength whose linear sRGB under D65
 to about 1e-9.
 
 Reproducibility: the same seed, jaxcos estimator and jax version give the
-same files on CPU (the generating versions are in each file's metadata).
-Regenerate into another folder and compare with ``--out``. It takes about
-ten minutes on two CPU cores.
+same files on CPU (the generating versions are in each file's metadata); any
+change to the estimator's arithmetic moves the last digits, so rerun this
+script after changing ``jaxcos/_walk.py`` or ``jaxcos/_phase.py``. Regenerate
+into another folder and compare with ``--out``. It needs about 6 minutes of
+CPU time (Dewy 2, the sharpest highlight, takes most of it): 6 to 11 minutes
+on two cores.
 """
 
 import argparse

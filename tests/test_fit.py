@@ -4,77 +4,78 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 import jaxcos
 from jaxcos._cli import main
-from jaxcos._fit import fit, make_problem, parameterization, with_mc_error
+from jaxcos._fit import fit, make_problem, parameterization
 from jaxcos._measurements import Measurements
 
-# The fit's Monte Carlo error is correlated across the outgoing angles of an
-# incidence (the same walks serve them all), so weighting it into the
-# likelihood as independent noise understates its effect on the parameters.
-# These tests keep it well below the measurement noise (about 3% of a value
-# at 256 walks against 10% noise) so the tolerances derived from the noise hold.
-WALKS, BOUNCES = 256, 48
+# The data are made by the fit's own estimator (same key, budget and lobe
+# probabilities) plus noise, so the model at the truth reproduces the
+# noise-free data exactly and the fit's error is the noise's alone. With
+# independent walks the Monte Carlo error of the fit, correlated across the
+# outgoing angles of an incidence, would add a coherent offset that a
+# tolerance derived from the noise does not cover; the estimator's own
+# accuracy is tested in test_walk.py.
+WALKS, BOUNCES, SEED = 128, 48, 0
+
+TRUTH = jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=0.6, albedo_d=(0.9, 0.8, 0.7), g1=0.4, g2=0.0, w_g=1.0,
+                                             albedo_p=(0.85, 0.85, 0.8), alpha_p=0.3, theta_p=4.0),),
+                        variant="single_lobe")
+START = jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=0.5, albedo_d=0.8, g1=0.2, g2=0.0, w_g=1.0, albedo_p=0.8,
+                                             alpha_p=0.2, theta_p=2.0),), variant="single_lobe")
 
 
-def _synthetic(material, seed=7, rel=0.10, add=0.005):
-    """A small reflectance-factor data set from ``material``: a noise-free reference plus Gaussian noise."""
-    ti = np.repeat([10.0, 35.0, 60.0], 9)
-    to = np.tile([-60.0, -30.0, -5.0, 10.0, 25.0, 35.0, 45.0, 60.0, 75.0], 3)
-    f = np.pi * np.asarray(jaxcos.inplane_bsdf(material, ti, to, jax.random.key(1000), walks=4096, bounces=BOUNCES))
+def _synthetic(material, start, seed=7, rel=0.05, add=0.005):
+    """Reflectance factors of ``material`` plus Gaussian noise, under the estimator a fit from ``start`` uses.
+
+    Four incidences by thirteen viewing angles.
+    """
+    ti = np.repeat([0.0, 20.0, 40.0, 60.0], 13)
+    to = np.tile([-70.0, -50.0, -30.0, -10.0, 5.0, 15.0, 25.0, 35.0, 45.0, 55.0, 65.0, 75.0, 85.0], 4)
+    est = jaxcos.simulate(material, jaxcos.make_query(ti, to), jax.random.key(SEED), walks=WALKS, bounces=BOUNCES,
+                          lobe_probs=jaxcos.lobe_probabilities(start))
+    f = np.pi * np.asarray(est.f, dtype=float)
     std = np.sqrt((rel * f) ** 2 + add ** 2)
     values = f + std * np.random.default_rng(seed).standard_normal(f.shape)
     return Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros_like(ti), values=values, std=std,
                         quantity="reflectance_factor", metadata={}, path="synthetic.csv")
 
 
-TRUTH = jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=0.6, albedo_d=(0.9, 0.8, 0.7), g1=0.4, g2=0.0, w_g=1.0,
-                                             albedo_p=(0.85, 0.85, 0.8), alpha_p=0.3, theta_p=4.0),),
-                        variant="single_lobe")
+def _delta_chi2(result):
+    """``loss(truth) - loss(fit)`` under the fit's own objective (same key, weights, lobe probabilities)."""
+    x_true = result.param.from_material(TRUTH)
+    return float(result.problem.loss(x_true)) - result.record["loss"]
 
 
-@pytest.fixture(scope="module")
-def data():
-    return _synthetic(TRUTH)
-
-
-def _laplace_sigma(meas, result):
-    """Standard deviations of the fitted coordinates from the Gauss-Newton covariance ``(J^T J)^-1``."""
-    problem = result.problem
-    jac = jax.jacfwd(problem.residuals)(result.x)
-    cov = np.linalg.inv(np.asarray(jac.T @ jac, dtype=float))
-    return np.sqrt(np.diag(cov))
+# For Gaussian noise, ``loss(truth) - loss(optimum)`` is chi-square distributed
+# with as many degrees of freedom as fitted parameters: the region it bounds is
+# the noise's own confidence region. (The Laplace width of each coordinate is
+# not used: under a fixed key the objective is rough on small scales in g1 and
+# alpha_p, so the local slope overstates how well the data pin them.)
+CHI2_BOUND = float(chi2.ppf(1 - 1e-4, 10))
 
 
 @pytest.mark.slow
-def test_fit_recovers_known_parameters(data):
-    """From the default start, LM lands within 4 posterior standard deviations of the truth, per coordinate.
-
-    The tolerance is the Gauss-Newton (Laplace) standard deviation of each
-    unbounded coordinate at the optimum, under the fit's own weights (noise
-    and Monte Carlo error): the fit may not know the truth better than the
-    data allow, and must not miss it by more.
-    """
-    result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, start=jaxcos.Material(
-        layers=(jaxcos.Layer(t=16.0, c_d=0.5, albedo_d=0.8, g1=0.2, g2=0.0, w_g=1.0, albedo_p=0.8, alpha_p=0.2,
-                             theta_p=2.0),), variant="single_lobe"))
-    x_true = result.param.from_material(TRUTH)
-    sigma = _laplace_sigma(data, result)
-    z = (np.asarray(result.x) - np.asarray(x_true)) / sigma
-    assert np.all(np.abs(z) < 4.0), dict(zip(result.param.labels(), np.round(z, 2)))
-    assert 0.3 < result.record["reduced_chi2"] < 3.0
+def test_fit_recovers_known_parameters():
+    """From another start, LM reaches an optimum at least as good as the truth, inside the noise's region."""
+    data = _synthetic(TRUTH, START)
+    result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, seed=SEED, start=START)
+    delta = _delta_chi2(result)
+    assert -1e-3 * result.record["loss"] <= delta < CHI2_BOUND, delta
+    dof = data.values.size - result.param.size
+    # The data carry noise but no Monte Carlo error against this model (same key): judge by the noise alone.
+    assert chi2.ppf(1e-4, dof) / dof < result.record["reduced_chi2_noise_only"] < chi2.ppf(1 - 1e-4, dof) / dof
 
 
 @pytest.mark.slow
-def test_fit_started_at_truth_stays(data):
-    """Started at the truth, the optimum moves by less than 4 Laplace standard deviations and the loss drops."""
-    result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, start=TRUTH)
-    x_true = result.param.from_material(TRUTH)
-    sigma = _laplace_sigma(data, result)
-    assert np.all(np.abs((np.asarray(result.x) - np.asarray(x_true)) / sigma) < 4.0)
-    problem = with_mc_error(result.problem, data, x_true)
-    assert result.record["loss"] <= float(problem.loss(x_true)) * (1 + 1e-6)
+def test_fit_started_at_truth_stays():
+    """Started at the truth, the fit does not end worse than the truth, nor outside the noise's region."""
+    data = _synthetic(TRUTH, TRUTH, seed=8)
+    result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, seed=SEED, start=TRUTH)
+    delta = _delta_chi2(result)
+    assert -1e-6 * result.record["loss"] <= delta < CHI2_BOUND, delta
 
 
 def test_parameterization_round_trip():

@@ -1,0 +1,77 @@
+"""Levenberg-Marquardt against the Powell baseline, on the same objective, per bundled data set.
+
+Both methods refine the same start (the best screened start of the default
+multi-start, so the comparison is of the local solvers) on the same residuals:
+the same key, budget, lobe probabilities and weights. Recorded: wall time,
+forward evaluations (a Jacobian counts as its measured cost in forward
+evaluations), final loss, and the time LM needs to reach Powell's final loss.
+
+    python benchmarks/bench_fit.py dewy1 matte2     # appends to benchmarks/results/fit.json
+"""
+
+import json
+import os
+import platform
+import sys
+import time
+
+import jax
+import numpy as np
+
+import jaxcos
+from jaxcos._fit import solve_lm, solve_powell, with_mc_error
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+
+
+def _time(fn):
+    t0 = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t0
+
+
+def bench(product, max_powell=4000):
+    meas = jaxcos.load_measurements(os.path.join(ROOT, "measurements", f"{product}.csv"))
+    full, t_full = _time(lambda: jaxcos.fit(meas))
+    problem = with_mc_error(full.problem, meas, full.problem.param.from_material(full.material))
+    # A common start: the default start of the fit (no screening), for both solvers.
+    x0 = full.param.from_material(jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=0.7, albedo_d=0.8, g1=0.5,
+                                                                          g2=-0.2, w_g=0.7, albedo_p=0.8,
+                                                                          alpha_p=0.2, theta_p=2.0),)))
+    solve_lm(problem, x0, max_steps=1)  # compile
+    (x_lm, loss_lm, steps), t_lm = _time(lambda: solve_lm(problem, x0))
+    loss_fn = jax.jit(lambda x: problem.loss(x))
+    loss_fn(x0).block_until_ready()
+    fwd = min(_time(lambda: loss_fn(x0).block_until_ready())[1] for _ in range(5))
+    jac_fn = jax.jit(jax.jacfwd(lambda x: problem.residuals(x)))
+    jac_fn(x0).block_until_ready()
+    jac = min(_time(lambda: jac_fn(x0).block_until_ready())[1] for _ in range(3))
+    (x_pw, loss_pw, nfev), t_pw = _time(lambda: solve_powell(problem, x0, max_evaluations=max_powell))
+    return dict(product=product, n_params=int(problem.param.size), n_points=int(meas.n_points),
+                full_fit=dict(time_s=t_full, record=full.record),
+                forward_s=fwd, jacobian_s=jac, jacobian_in_forwards=jac / fwd,
+                lm=dict(time_s=t_lm, loss=loss_lm, steps=steps, forward_evaluations=(steps + 1) * jac / fwd),
+                powell=dict(time_s=t_pw, loss=loss_pw, forward_evaluations=nfev, max_evaluations=max_powell),
+                speedup=t_pw / t_lm, lm_loss_not_worse=loss_lm <= loss_pw * (1 + 1e-3))
+
+
+def main(products):
+    path = os.path.join(HERE, "results", "fit.json")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    data = json.load(open(path)) if os.path.exists(path) else {"runs": []}
+    for product in products:
+        r = bench(product)
+        r["machine"] = dict(platform=platform.platform(), cpus=os.cpu_count(), jax=jax.__version__,
+                            load_average=os.getloadavg())
+        data["runs"].append(r)
+        print(f"{product}: full fit {r['full_fit']['time_s']:.0f} s; from the default start LM {r['lm']['time_s']:.1f} s "
+              f"loss {r['lm']['loss']:.1f} ({r['lm']['forward_evaluations']:.0f} forward evals), "
+              f"Powell {r['powell']['time_s']:.1f} s loss {r['powell']['loss']:.1f} "
+              f"({r['powell']['forward_evaluations']} evals); speed-up {r['speedup']:.1f}", flush=True)
+        with open(path, "w") as fh:
+            json.dump(data, fh, indent=2)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:] or list(jaxcos.PRODUCTS))

@@ -1,0 +1,104 @@
+"""Speed of the forward model and of its Jacobian on the standard grid, at the paper's budget.
+
+Standard grid: ``theta_i`` 0..75 step 5 (16), ``theta_o`` -85..85 step 5 (35);
+t = 16, 512 bounces, 128 walks per incidence direction. For a dewy and a matte
+product it measures compile time, run time (best of several, after
+``block_until_ready``), walk-steps per second, peak memory (each case in a
+fresh process), the Jacobian against 12 fitted parameters by batched forward
+mode, and the variance and cost of exact against Monte Carlo single scattering.
+
+    python benchmarks/bench_forward.py            # writes benchmarks/results/forward.json
+"""
+
+import json
+import multiprocessing as mp
+import os
+import platform
+import resource
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def _grid():
+    import numpy as np
+
+    ti = np.repeat(np.arange(0, 80, 5.0), 35)
+    to = np.tile(np.arange(-85, 90, 5.0), 16)
+    return ti, to
+
+
+def _case(kind, product, out):
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxcos
+
+    m = jaxcos.published(product)
+    q = jaxcos.make_query(*_grid())
+    key = jax.random.key(0)
+    lp = jaxcos.lobe_probabilities(m)
+    walks, bounces = 128, 512
+    L = m.layers[0]
+    x0 = jnp.concatenate([jnp.stack([L.c_d, L.g1, L.g2, L.w_g, L.alpha_p, L.theta_p]), L.albedo_d, L.albedo_p])
+
+    def material(x):
+        return jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=x[0], g1=x[1], g2=x[2], w_g=x[3], alpha_p=x[4],
+                                                    theta_p=x[5], albedo_d=x[6:9], albedo_p=x[9:12]),))
+
+    single = "mc" if kind == "forward_mc_single" else "exact"
+    fwd = lambda x: jaxcos.simulate(material(x), q, key, walks=walks, bounces=bounces, lobe_probs=lp,
+                                    single_scattering=single).f
+    fn = jax.jit(jax.jacfwd(fwd)) if kind == "jacobian" else jax.jit(fwd)
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(x0))
+    first = time.perf_counter() - t0
+    runs = []
+    for _ in range(3 if kind == "jacobian" else 7):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(x0))
+        runs.append(time.perf_counter() - t0)
+    run = min(runs)
+    result = dict(kind=kind, product=product, compile_s=first - run, run_s=run, runs_s=runs,
+                  walk_steps_per_s=16 * walks * bounces / run,
+                  peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    if kind.startswith("forward"):
+        est = jaxcos.simulate(m, q, key, walks=walks, bounces=bounces, lobe_probs=lp, single_scattering=single)
+        rel = np.asarray(est.stderr / jnp.maximum(est.f, 1e-12))
+        result.update(rel_stderr_median=float(np.median(rel)), rel_stderr_p95=float(np.percentile(rel, 95)),
+                      rel_stderr_max=float(rel.max()))
+    out.put(result)
+
+
+def main():
+    import jax
+
+    ctx = mp.get_context("spawn")
+    results = []
+    for product in ("dewy1", "matte2"):
+        for kind in ("forward", "forward_mc_single", "jacobian"):
+            queue = ctx.Queue()
+            proc = ctx.Process(target=_case, args=(kind, product, queue))
+            proc.start()
+            results.append(queue.get())
+            proc.join()
+            r = results[-1]
+            print(f"{product:7s} {kind:18s} compile {r['compile_s']:6.1f} s  run {r['run_s'] * 1e3:7.0f} ms  "
+                  f"peak {r['peak_rss_mb']:6.0f} MB", flush=True)
+    for product in ("dewy1", "matte2"):
+        f = next(r for r in results if r["product"] == product and r["kind"] == "forward")
+        j = next(r for r in results if r["product"] == product and r["kind"] == "jacobian")
+        j["ratio_to_forward"] = j["run_s"] / f["run_s"]
+        print(f"{product}: Jacobian / forward = {j['ratio_to_forward']:.1f}")
+    machine = dict(platform=platform.platform(), processor=platform.processor(), cpus=os.cpu_count(),
+                   python=sys.version.split()[0], jax=jax.__version__, backend=jax.default_backend(),
+                   load_average=os.getloadavg())
+    os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
+    with open(os.path.join(HERE, "results", "forward.json"), "w") as fh:
+        json.dump(dict(machine=machine, results=results), fh, indent=2)
+
+
+if __name__ == "__main__":
+    main()
