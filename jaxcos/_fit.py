@@ -248,7 +248,7 @@ def solve_powell(problem, x0, *, max_evaluations=20000, xtol=1e-4, ftol=1e-8):
 
 
 def random_starts(param, n, rng):
-    """``n`` starting vectors drawn uniformly over the physical ranges (``alpha_p`` log-uniformly)."""
+    """``n`` starting vectors drawn uniformly over the physical ranges (``alpha_p`` log-uniformly in [0.003, 1])."""
     draws = []
     for _ in range(n):
         values = dict(
@@ -356,7 +356,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         rng = np.random.default_rng(seed)
         pool = jnp.concatenate([x_default[None], random_starts(param, starts, rng)])
         screen = dataclasses.replace(problem, walks=max(walks // 4, 8), bounces=max(bounces // 4, 16))  # 1/16 cost
-        say(f"screening {pool.shape[0]} starts with a short Levenberg-Marquardt at a quarter budget")
+        say(f"screening {pool.shape[0]} starts with a short Levenberg-Marquardt at a quarter of the walks and bounces")
         xs, losses, _ = jax.vmap(lambda x: _lm(screen, x, 5, 1e-3, 1e-3))(pool)
         losses = np.where(np.isfinite(np.asarray(losses)), np.asarray(losses), np.inf)
         order = np.argsort(losses)[:refine]

@@ -19,8 +19,8 @@ no random decision has a probability that depends on a parameter:
   chosen uniformly among the layers ahead and weighted by its probability; a
   Lambertian base is reached with probability 1/2 (when flying down) and
   weighted by the transmittance.
-* **Lobe selection uses fixed probabilities** (equal among the lobes the
-  variant contains) and one-sample MIS: the throughput is multiplied by
+* **Lobe selection uses fixed probabilities** (:func:`lobe_probabilities`
+  of a reference material, held fixed) and one-sample MIS: the throughput is multiplied by
   ``W(w -> w') / pdf_mix(w')``, where ``pdf_mix`` is the mixture of the lobe
   densities with those same fixed probabilities. Only the direction within a
   lobe is a continuous, reparameterized sample.
