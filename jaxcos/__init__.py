@@ -28,5 +28,5 @@ from ._material import (
 __version__ = "0.1.0"
 from ._walk import DEFAULT_BOUNCES, DEFAULT_WALKS, Estimate, Query, inplane_bsdf, lobe_probabilities, make_query, simulate
 from ._fit import FitResult, fit
-from ._measurements import Measurements, load_measurements
+from ._measurements import Measurements, import_raw, load_measurements, save_measurements
 from ._report import write_fit

@@ -106,12 +106,11 @@ def _progress(message, _start=[]):
 
 def _cmd_fit(args):
     from ._fit import fit
-    from ._material import VARIANTS, load_params
+    from ._material import check_variant, load_params
     from ._measurements import load_measurements
     from ._report import FIT_FILES, write_fit
 
-    if args.variant not in VARIANTS:
-        raise InputError(f"unknown variant {args.variant!r}; choose one of {', '.join(VARIANTS)}.")
+    check_variant(args.variant)
     refuse_overwrite([os.path.join(args.out, name) for name in FIT_FILES], args.force)
     meas = load_measurements(args.measurements)
     start = load_params(args.start) if args.start else None

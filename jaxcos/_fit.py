@@ -31,7 +31,7 @@ import numpy as np
 import optimistix as optx
 
 from ._errors import InputError
-from ._material import VARIANTS, Layer, Material
+from ._material import Layer, Material, check_variant
 from ._walk import lobe_probabilities, make_query, simulate
 
 FIT_WALKS = 256
@@ -126,8 +126,7 @@ class Parameterization(eqx.Module):
 
 def parameterization(variant="two_lobe", *, fit_t=False, fit_phi=False, template=None):
     """The :class:`Parameterization` of ``variant``; non-fitted values come from ``template`` or the defaults."""
-    if variant not in VARIANTS:
-        raise InputError(f"unknown variant {variant!r}; choose one of {', '.join(VARIANTS)}.")
+    check_variant(variant)
     names = _FREE[variant] + (("t",) if fit_t else ()) + (("phi_p",) if fit_phi else ())
     base = dict(_DEFAULT)
     if template is not None:
@@ -136,11 +135,6 @@ def parameterization(variant="two_lobe", *, fit_t=False, fit_phi=False, template
     base.update(_VARIANT_FIXED[variant])
     fixed = {k: jnp.asarray(v, dtype=jnp.result_type(float)) for k, v in base.items() if k not in names}
     return Parameterization(variant=variant, names=names, fixed=fixed)
-
-
-def _check_variant(variant):
-    if variant not in VARIANTS:
-        raise InputError(f"unknown variant {variant!r}; choose one of {', '.join(VARIANTS)}.")
 
 
 # --- the objective ----------------------------------------------------------------
@@ -339,7 +333,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     Returns:
         A :class:`FitResult`.
     """
-    _check_variant(variant)
+    check_variant(variant)
     if method not in ("lm", "powell"):
         raise InputError(f"unknown method {method!r}; choose 'lm' or 'powell'.")
     say = progress or (lambda msg: None)

@@ -112,10 +112,15 @@ class Material(eqx.Module):
         return "black" if self.base_albedo is None else "lambertian"
 
 
-def with_variant(material, variant):
-    """``material`` under another variant, its switched-off parameters set to their fixed values."""
+def check_variant(variant):
+    """Raise :class:`InputError` unless ``variant`` is one of :data:`VARIANTS`."""
     if variant not in VARIANTS:
         raise InputError(f"unknown variant {variant!r}; choose one of {', '.join(VARIANTS)}.")
+
+
+def with_variant(material, variant):
+    """``material`` under another variant, its switched-off parameters set to their fixed values."""
+    check_variant(variant)
     fixed = _FIXED[variant]
     layers = tuple(eqx.tree_at(lambda l: [getattr(l, k) for k in fixed], layer, [_scalar(v) for v in fixed.values()])
                    if fixed else layer for layer in material.layers)

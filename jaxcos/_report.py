@@ -29,9 +29,9 @@ def fit_figure(meas, model, path, *, exposure=None):
     fig = Figure(figsize=(15, 4.2), constrained_layout=True)
     axes = fig.subplots(1, 3)
     unit = "reflectance factor" if meas.quantity == "reflectance_factor" else "BRDF (1/sr)"
-    panels = [(meas.values, f"measured ({unit})"), (model, "fitted"), (np.abs(model - meas.values), "|fitted - measured|")]
-    for ax, (values, title) in zip(axes, panels):
-        gain = DIFFERENCE_GAIN if values is panels[2][0] else 1.0
+    panels = [(meas.values, f"measured ({unit})", 1.0), (model, "fitted", 1.0),
+              (np.abs(model - meas.values), "|fitted - measured|", DIFFERENCE_GAIN)]
+    for ax, (values, title, gain) in zip(axes, panels):
         draw_reflectance(ax, meas.theta_i, meas.theta_o, values, exposure=gain * k, title=title)
     fig.savefig(path, dpi=110)
 

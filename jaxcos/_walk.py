@@ -89,7 +89,6 @@ def make_query(theta_i_deg, theta_o_deg, phi_o_deg=None):
     With traced angles (inside ``jit``) grouping is impossible and each pair
     gets its own walks: correct, but slower.
     """
-    theta_i_deg = jnp.asarray(theta_i_deg) if isinstance(theta_i_deg, jax.core.Tracer) else theta_i_deg
     if phi_o_deg is None:
         phi_o_deg = jnp.zeros_like(jnp.asarray(theta_o_deg, dtype=float))
     if any(isinstance(a, jax.core.Tracer) for a in (theta_i_deg, theta_o_deg, phi_o_deg)):
