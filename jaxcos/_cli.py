@@ -9,14 +9,7 @@ import argparse
 import os
 import sys
 
-from ._errors import InputError
-
-
-def refuse_overwrite(paths, force):
-    """Raise :class:`InputError` if any of ``paths`` exists and ``force`` is off."""
-    for path in paths:
-        if os.path.exists(path) and not force:
-            raise InputError(f"{path}: already exists; pass --force to overwrite it.")
+from ._errors import InputError, refuse_overwrite
 
 
 # --- eval ------------------------------------------------------------------------

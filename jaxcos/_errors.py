@@ -1,5 +1,7 @@
 """The one exception users see for bad input."""
 
+import os
+
 
 class InputError(ValueError):
     """Bad user input: a file, a field or an option that jaxcos cannot use.
@@ -9,3 +11,10 @@ class InputError(ValueError):
     number.``. Every command turns it into that line on stderr and a non-zero
     exit status, without a traceback.
     """
+
+
+def refuse_overwrite(paths, force):
+    """Raise :class:`InputError` if any of ``paths`` exists and ``force`` is off."""
+    for path in paths:
+        if os.path.exists(path) and not force:
+            raise InputError(f"{path}: already exists; pass --force to overwrite it.")

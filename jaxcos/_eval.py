@@ -13,7 +13,7 @@ import os
 import jax
 import numpy as np
 
-from ._errors import InputError
+from ._errors import InputError, refuse_overwrite
 from ._measurements import _check_angles, _check_duplicates, _parse_number, _read_lines, _split_header, _where
 from ._walk import DEFAULT_BOUNCES, DEFAULT_WALKS, make_query, simulate
 
@@ -68,8 +68,7 @@ def evaluate(material, theta_i, theta_o, phi_o, key, *, walks=DEFAULT_WALKS, bou
 def write_evaluation(path, theta_i, theta_o, phi_o, values, std, *, quantity, overwrite=False):
     """Write the rows of ``jaxcos eval`` (FORMATS.md) atomically; an existing file is kept unless ``overwrite``."""
     path = os.fspath(path)
-    if os.path.exists(path) and not overwrite:
-        raise InputError(f"{path}: already exists; pass --force to overwrite it.")
+    refuse_overwrite([path], overwrite)
     with_phi = bool(np.any(phi_o != 0))
     header = "theta_i,theta_o," + ("phi_o," if with_phi else "") + "r,g,b,r_std,g_std,b_std"
     lines = [f"# quantity: {quantity}", header]
@@ -86,8 +85,7 @@ def run_eval(args):
     """The ``jaxcos eval`` command (see ``jaxcos eval --help``)."""
     from ._material import load_params
 
-    if os.path.exists(args.out) and not args.force:
-        raise InputError(f"{args.out}: already exists; pass --force to overwrite it.")
+    refuse_overwrite([args.out], args.force)
     for name, value in (("--walks", args.walks), ("--bounces", args.bounces)):
         if value is not None and value < 1:
             raise InputError(f"{name} must be a positive integer, not {value}.")

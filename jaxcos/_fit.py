@@ -157,11 +157,14 @@ class Problem(eqx.Module):
     walks: int = eqx.field(static=True)
     bounces: int = eqx.field(static=True)
 
+    def estimate(self, x):
+        """The :class:`~jaxcos.Estimate` of the material at ``x`` under this problem's key and budget."""
+        return simulate(self.param.to_material(x), self.query, self.key, walks=self.walks,
+                        bounces=self.bounces, lobe_probs=self.lobe_probs)
+
     def model(self, x):
         """The model in the file's quantity, ``(N, 3)``."""
-        est = simulate(self.param.to_material(x), self.query, self.key, walks=self.walks,
-                       bounces=self.bounces, lobe_probs=self.lobe_probs)
-        return self.scale * est.f
+        return self.scale * self.estimate(x).f
 
     def residuals(self, x):
         return _residuals(self, x)
@@ -288,15 +291,13 @@ def with_mc_error(problem, meas, x):
     point the walks overestimate also gets a large standard error) and the
     weights would bias the fit. Files without std columns stay unweighted.
     """
-    material = problem.param.to_material(x)
-    lobe_probs = lobe_probabilities(material)
+    problem = dataclasses.replace(problem, lobe_probs=lobe_probabilities(problem.param.to_material(x)))
     if meas.std is None:
-        return dataclasses.replace(problem, lobe_probs=lobe_probs)
-    est = simulate(material, problem.query, problem.key, walks=problem.walks, bounces=problem.bounces,
-                   lobe_probs=lobe_probs)
+        return problem
+    est = problem.estimate(x)
     rel = jnp.median(est.stderr / jnp.maximum(jnp.abs(est.f), 1e-12))
     sigma = jnp.sqrt(jnp.asarray(meas.std, problem.sigma.dtype) ** 2 + (rel * problem.scale * est.f) ** 2)
-    return dataclasses.replace(problem, lobe_probs=lobe_probs, sigma=sigma)
+    return dataclasses.replace(problem, sigma=sigma)
 
 
 def _statistics(meas, model, loss, n_free):
@@ -370,8 +371,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         results.append((index, x, loss, steps, prob))
     say("evaluating the fitted model")
     index, x, loss, steps, problem = min(results, key=lambda r: r[2])
-    est = simulate(param.to_material(x), problem.query, key, walks=walks, bounces=bounces,
-                   lobe_probs=problem.lobe_probs)
+    est = problem.estimate(x)
     model = np.asarray(problem.scale * est.f)
     model_std = np.asarray(problem.scale * est.stderr)
     elapsed = time.perf_counter() - t0

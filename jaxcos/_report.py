@@ -14,7 +14,7 @@ import tempfile
 import numpy as np
 from matplotlib.figure import Figure
 
-from ._errors import InputError
+from ._errors import refuse_overwrite
 from ._material import material_to_dict, save_params
 from ._plot import default_exposure, draw_reflectance
 
@@ -112,9 +112,7 @@ def write_fit(result, meas, out_dir, *, force=False):
     unless ``force``.
     """
     targets = [os.path.join(out_dir, name) for name in FIT_FILES]
-    for path in targets:
-        if os.path.exists(path) and not force:
-            raise InputError(f"{path}: already exists; pass --force to overwrite it.")
+    refuse_overwrite(targets, force)
     os.makedirs(out_dir, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out_dir, prefix=".jaxcos-") as tmp:
         save_params(result.material, os.path.join(tmp, "params.json"), extra={"fit": result.record})
