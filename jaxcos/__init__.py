@@ -30,3 +30,6 @@ from ._walk import DEFAULT_BOUNCES, DEFAULT_WALKS, Estimate, Query, inplane_bsdf
 from ._fit import FitResult, fit
 from ._measurements import Measurements, import_raw, load_measurements, save_measurements
 from ._report import write_fit
+from ._posterior import Posterior, uncertainty, write_uncertainty
+from ._ablate import ABLATION_VARIANTS, AblationResult, KubelkaMunk, ablate, fit_kubelka_munk, km_combine, km_invert, km_layer, km_over_background, km_r_inf, write_ablation
+from ._render import render

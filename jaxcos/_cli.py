@@ -17,8 +17,18 @@ from ._errors import InputError, refuse_overwrite
 
 def _cmd_eval(args):
     from ._eval import run_eval
+    from ._walk import resolve_budget
 
+    args.walks, args.bounces = resolve_budget(args.budget, walks=args.walks, bounces=args.bounces)
     run_eval(args)
+
+
+def _add_budget(p, default):
+    from ._walk import BUDGETS
+
+    named = ", ".join(f"{name} ({w} walks x {b} bounces)" for name, (w, b) in BUDGETS.items())
+    p.add_argument("--budget", metavar="NAME", default=None,
+                   help=f"a named Monte Carlo budget: {named}; --walks and --bounces override it (default: {default})")
 
 
 def _add_eval(sub):
@@ -30,6 +40,7 @@ def _add_eval(sub):
     p.add_argument("--out", required=True, metavar="OUT.csv")
     p.add_argument("--walks", type=int, default=None, help="walks per incidence direction (default: the library default)")
     p.add_argument("--bounces", type=int, default=None, help="bounces per walk (default: the library default)")
+    _add_budget(p, "paper")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quantity", choices=("brdf", "reflectance_factor"), default="brdf",
                    help="write f (1/sr) or the reflectance factor pi*f")
@@ -89,27 +100,34 @@ def _add_plot(sub):
 # --- fit -------------------------------------------------------------------------
 
 
-def _progress(message, _start=[]):
+def progress(command):
+    """A ``progress(message)`` callable printing ``jaxcos COMMAND [elapsed s]: message`` to stderr."""
     import time
 
-    if not _start:
-        _start.append(time.perf_counter())
-    print(f"jaxcos fit [{time.perf_counter() - _start[0]:6.1f} s]: {message}", file=sys.stderr, flush=True)
+    start = time.perf_counter()
+
+    def say(message):
+        print(f"jaxcos {command} [{time.perf_counter() - start:6.1f} s]: {message}", file=sys.stderr, flush=True)
+
+    return say
 
 
 def _cmd_fit(args):
-    from ._fit import fit
+    from ._fit import FIT_BOUNCES, FIT_WALKS, fit
     from ._material import check_variant, load_params
     from ._measurements import load_measurements
     from ._report import FIT_FILES, write_fit
+    from ._walk import resolve_budget
 
     check_variant(args.variant)
+    walks, bounces = resolve_budget(args.budget, walks=args.walks, bounces=args.bounces,
+                                    default=(FIT_WALKS, FIT_BOUNCES))
     refuse_overwrite([os.path.join(args.out, name) for name in FIT_FILES], args.force)
     meas = load_measurements(args.measurements)
     start = load_params(args.start) if args.start else None
-    result = fit(meas, variant=args.variant, method=args.method, seed=args.seed, walks=args.walks,
-                 bounces=args.bounces, starts=args.starts, fit_t=args.fit_t, fit_phi=args.fit_phi, start=start,
-                 t=args.t, progress=_progress)
+    result = fit(meas, variant=args.variant, method=args.method, seed=args.seed, walks=walks,
+                 bounces=bounces, starts=args.starts, fit_t=args.fit_t, fit_phi=args.fit_phi, start=start,
+                 t=args.t, progress=progress("fit"))
     write_fit(result, meas, args.out, force=args.force)
     r = result.record
     chi2 = f", reduced chi-square {r['reduced_chi2']:.2f}" if "reduced_chi2" in r else ""
@@ -130,8 +148,9 @@ def _add_fit(sub):
                    help="two_lobe (default), single_lobe, diffusers_only or platelets_only")
     p.add_argument("--method", choices=("lm", "powell"), default="lm")
     p.add_argument("--seed", type=int, default=0, help="seeds the Monte Carlo key and the random starts")
-    p.add_argument("--walks", type=int, default=FIT_WALKS, help=f"walks per incidence direction (default {FIT_WALKS})")
-    p.add_argument("--bounces", type=int, default=FIT_BOUNCES, help=f"bounces per walk (default {FIT_BOUNCES})")
+    p.add_argument("--walks", type=int, default=None, help=f"walks per incidence direction (default {FIT_WALKS})")
+    p.add_argument("--bounces", type=int, default=None, help=f"bounces per walk (default {FIT_BOUNCES})")
+    _add_budget(p, "standard")
     p.add_argument("--starts", type=int, default=15, help="random starts screened besides the default one (default 15)")
     p.add_argument("--start", metavar="PARAMS", help="start from this params.json instead of the multi-start")
     p.add_argument("--t", type=float, default=16.0, help="optical thickness when it is not fitted (default 16)")
@@ -143,7 +162,28 @@ def _add_fit(sub):
 
 # --- registry ----------------------------------------------------------------------
 
-_COMMANDS = [_add_eval, _add_fit, _add_import, _add_plot]
+def _from(module):
+    """The ``add_command(subparsers)`` of a private module, imported when the parser is built."""
+
+    def add(sub):
+        import importlib
+
+        importlib.import_module(module, __package__).add_command(sub)
+
+    return add
+
+
+# One entry per command, in the order of ``jaxcos --help``.
+_COMMANDS = [
+    _add_eval,
+    _add_fit,
+    _add_import,
+    _add_plot,
+    _from("._posterior"),
+    _from("._bench"),
+    _from("._ablate"),
+    _from("._render"),
+]
 
 
 def _parser():
@@ -157,9 +197,26 @@ def _parser():
     return parser
 
 
+def _compilation_cache():
+    """Keep compiled programs between runs in ``$JAXCOS_CACHE`` (default ``~/.cache/jaxcos/xla``; empty: off).
+
+    A second fit of a file of the same shape then skips most of its compile time.
+    """
+    path = os.environ.get("JAXCOS_CACHE")
+    if path is None:
+        root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        path = os.path.join(root, "jaxcos", "xla")
+    if path:
+        import jax
+
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
 def main(argv=None):
     """Entry point of the ``jaxcos`` console script; returns the exit status."""
     args = _parser().parse_args(argv)
+    _compilation_cache()
     try:
         status = args.func(args)
     except InputError as err:

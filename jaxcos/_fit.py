@@ -67,6 +67,13 @@ def _unit_to_x(v):
     return np.log(v) - np.log1p(-v)
 
 
+_BOUNDS = {
+    # name: the physical range that the transforms below map onto
+    "c_d": (0.0, 1.0), "w_g": (0.0, 1.0), "albedo_d": (0.0, 1.0), "albedo_p": (0.0, 1.0),
+    "alpha_p": (_ALPHA_MIN, 1.0), "g1": (-_G_MAX, _G_MAX), "g2": (-_G_MAX, _G_MAX), "theta_p": (0.0, 90.0),
+    "t": (0.0, 1e3), "phi_p": (-180.0, 180.0),
+}
+
 _TRANSFORMS = {
     # name: (x -> value, value -> x)
     "c_d": (jax.nn.sigmoid, _unit_to_x),
@@ -108,15 +115,31 @@ class Parameterization(eqx.Module):
             out += [f"{n}[{i}]" for i in range(_SIZE[n])] if n in _SIZE else [n]
         return out
 
-    def to_material(self, x):
-        values = dict(self.fixed)
+    def _split(self, v):
         i = 0
         for n in self.names:
             k = _SIZE.get(n, 1)
-            v = _TRANSFORMS[n][0](x[i:i + k])
-            values[n] = v if k > 1 else v[0]
+            yield n, v[i:i + k]
             i += k
+
+    def to_material(self, x):
+        """The material at the unbounded coordinates ``x``."""
+        return self.physical_to_material(self.to_physical(x))
+
+    def to_physical(self, x):
+        """The physical values at ``x``, one per :meth:`labels` entry (``theta_p``, ``phi_p`` in degrees)."""
+        return jnp.concatenate([_TRANSFORMS[n][0](part) for n, part in self._split(x)])
+
+    def physical_to_material(self, v):
+        """The material with the physical values ``v`` (no bounds are checked)."""
+        values = dict(self.fixed)
+        values.update({n: part if part.shape[0] > 1 else part[0] for n, part in self._split(v)})
         return Material(layers=(Layer(**values),), variant=self.variant)
+
+    def bounds(self):
+        """``(low, high)``: the physical range of each :meth:`labels` entry, the support of a uniform prior."""
+        lows, highs = zip(*[_BOUNDS[n] for n in self.names for _ in range(_SIZE.get(n, 1))])
+        return np.array(lows), np.array(highs)
 
     def from_material(self, material):
         layer = material.layers[0]

@@ -42,6 +42,13 @@ def _fmt(v):
     return f"{float(v):.4g}"
 
 
+def _budget_name(record):
+    from ._walk import BUDGETS
+
+    names = [n for n, budget in BUDGETS.items() if budget == (record["walks"], record["bounces"])]
+    return f" (budget `{names[0]}`)" if names else ""
+
+
 def fit_report(result, meas):
     """The human-readable ``report.md`` of a :class:`~jaxcos.FitResult`."""
     r = result.record
@@ -91,13 +98,17 @@ def fit_report(result, meas):
         "",
         "## Monte Carlo budget",
         "",
-        f"{r['walks']} walks per incidence direction, {r['bounces']} bounces per walk, one fixed key "
+        f"{r['walks']} walks per incidence direction, {r['bounces']} bounces per walk{_budget_name(r)}, one fixed key "
         "(common random numbers). Energy left in unfinished walks: at most "
         f"{r['unfinished_energy']:.2g} of the incident energy.",
     ]
     if meas.std is not None:
         lines.append(f"Median Monte Carlo standard error of the model relative to the measurement std: "
                      f"{r['mc_error_median']:.2f}; the fit weights each residual by the two combined.")
+        lines.append(f"Relative to the values (medians over points and channels): Monte Carlo error "
+                     f"{100 * np.median(result.model_std / np.maximum(np.abs(result.model), 1e-30)):.1f}%, "
+                     f"measurement noise {100 * np.median(meas.std / np.maximum(np.abs(meas.values), 1e-30)):.1f}%. "
+                     "A larger budget (`--budget`, `--walks`) shrinks the first as 1/sqrt(walks).")
     else:
         lines.append(f"Median Monte Carlo standard error of the model: {r['mc_error_median']:.3g} (the file has no std).")
     lines += ["", "![measured, fitted and difference](fit.png)", ""]

@@ -1,0 +1,146 @@
+"""Posterior spreads: the sampler on a known posterior, implicit sensitivities, coverage of a truth, errors."""
+
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+import jaxcos
+from jaxcos._cli import main
+from jaxcos._measurements import Measurements
+from jaxcos._posterior import laplace, run_ensemble, sensitivity, uncertainty, write_uncertainty
+
+# --- a linear-Gaussian problem whose posterior is known exactly -------------------
+
+
+def _linear_problem(seed=0, m=40, p=3):
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(m, p))
+    sigma = 0.1 + rng.uniform(size=m)
+    y = a @ np.array([0.5, -1.0, 2.0])[:p] + sigma * rng.normal(size=m)
+    return a, y, sigma
+
+
+def test_sampler_recovers_a_linear_gaussian_posterior():
+    """Mean and spreads of the chain match the closed form within their Monte Carlo error."""
+    a, y, sigma = _linear_problem()
+    aw, yw = a / sigma[:, None], y / sigma
+    cov = np.linalg.inv(aw.T @ aw)
+    mean = cov @ aw.T @ yw
+    log_prob = lambda v: -0.5 * np.sum((np.asarray(v) @ aw.T - yw) ** 2, axis=1)
+    chain = run_ensemble(log_prob, mean + 0.3 * np.sqrt(np.diag(cov)), np.sqrt(np.diag(cov)), seed=3, walkers=16,
+                         max_steps=4000)
+    assert chain.converged
+    sd = np.sqrt(np.diag(cov))
+    ess = chain.ess
+    # Standard errors of a mean and of a standard deviation from ESS effective draws; 4 of them.
+    assert np.all(np.abs(chain.samples.mean(axis=0) - mean) < 4 * sd / np.sqrt(ess))
+    assert np.all(np.abs(chain.samples.std(axis=0) / sd - 1) < 4 / np.sqrt(2 * ess))
+    assert 0.1 < np.mean(chain.acceptance) < 0.9
+
+
+def test_short_chain_is_reported():
+    a, y, sigma = _linear_problem()
+    log_prob = lambda v: -0.5 * np.sum(((np.asarray(v) @ a.T - y) / sigma) ** 2, axis=1)
+    chain = run_ensemble(log_prob, np.zeros(3), np.ones(3), seed=0, walkers=8, max_steps=50, check_every=25)
+    assert not chain.converged and chain.steps == 50
+
+
+def test_laplace_and_sensitivity_of_a_linear_least_squares_problem():
+    """Laplace is the exact covariance; the sensitivity is the exact derivative of the solution."""
+    a, y, sigma = _linear_problem(m=12)
+    jac = a / sigma[:, None]
+    solve = lambda yy: np.linalg.lstsq(jac, yy / sigma, rcond=None)[0]
+    np.testing.assert_allclose(laplace(jac), np.linalg.inv(jac.T @ jac), rtol=1e-8)
+    sens = sensitivity(jac, sigma)
+    eps = 1e-3
+    for m in (0, 5, 11):
+        dy = np.zeros_like(y)
+        dy[m] = eps
+        np.testing.assert_allclose((solve(y + dy) - solve(y)) / eps, sens[:, m], rtol=1e-6, atol=1e-9)
+
+
+# --- a small jaxcos problem with a known truth ---------------------------------------
+
+TRUTH = jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=0.6, albedo_d=(0.9, 0.8, 0.7), g1=0.4, g2=0.0, w_g=1.0,
+                                             albedo_p=(0.85, 0.85, 0.8), alpha_p=0.3, theta_p=4.0),),
+                        variant="single_lobe")
+
+
+def _synthetic(seed=11):
+    """Reflectance factors of TRUTH from a high-budget estimate (its own key) plus 5% + 0.005 Gaussian noise.
+
+    48 bounces, as in the fit: the test is about the spreads, not the truncation.
+    """
+    ti = np.repeat([0.0, 20.0, 40.0, 60.0], 13)
+    to = np.tile([-70.0, -50.0, -30.0, -10.0, 5.0, 15.0, 25.0, 35.0, 45.0, 55.0, 65.0, 75.0, 85.0], 4)
+    est = jaxcos.simulate(TRUTH, jaxcos.make_query(ti, to), jax.random.key(1234), walks=8192, bounces=48)
+    f = np.pi * np.asarray(est.f, dtype=float)
+    std = np.sqrt((0.05 * f) ** 2 + 0.005 ** 2)
+    values = f + std * np.random.default_rng(seed).standard_normal(f.shape)
+    return Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros_like(ti), values=values, std=std,
+                        quantity="reflectance_factor", metadata={}, path="synthetic.csv")
+
+
+@pytest.fixture(scope="module")
+def small_posterior():
+    data = _synthetic()
+    start = jaxcos.fit(data, variant="single_lobe", walks=128, bounces=48, start=TRUTH)
+    post = uncertainty(data, start, walkers=24, max_steps=600, lo_walks=32, lo_bounces=48, hi_walks=1024,
+                       checks=4, replicas=12)
+    return data, post
+
+
+# The truth lies inside the posterior's joint region: its Mahalanobis distance
+# from the posterior mean, under the posterior covariance, is a chi-square
+# variable with as many degrees of freedom as parameters. (One marginal at a
+# time would not do: a truth at the edge of the joint region can sit several
+# marginal widths from the median of a correlated parameter.)
+CHI2_BOUND = float(chi2.ppf(1 - 1e-4, 10))
+
+
+@pytest.mark.slow
+def test_posterior_covers_the_truth(small_posterior):
+    _, post = small_posterior
+    truth = np.asarray(post.fit.param.to_physical(post.fit.param.from_material(TRUTH)), float)
+    mean = np.array([post.summary[n]["median"] for n in post.labels])
+    half = np.array([0.5 * (post.summary[n]["p84"] - post.summary[n]["p16"]) for n in post.labels])
+    cov = post.correlation * np.outer(half, half)
+    d2 = float((truth - mean) @ np.linalg.solve(cov, truth - mean))
+    assert d2 < CHI2_BOUND, d2
+    for name in post.labels:
+        s = post.summary[name]
+        assert s["p2.5"] <= s["p16"] <= s["median"] <= s["p84"] <= s["p97.5"]
+    assert np.all(np.isfinite(post.chain.tau)) and np.all(post.chain.ess > 0)
+
+
+@pytest.mark.slow
+def test_write_uncertainty(small_posterior, tmp_path):
+    data, post = small_posterior
+    out = tmp_path / "post"
+    paths = write_uncertainty(post, data, str(out))
+    assert sorted(os.listdir(out)) == sorted(os.path.basename(p) for p in paths)
+    doc = json.loads((out / "posterior.json").read_text())
+    assert set(doc["parameters"]) == set(post.labels)
+    assert {"median", "p16", "p84", "p2.5", "p97.5"} <= set(doc["parameters"]["alpha_p"])
+    assert doc["diagnostics"]["converged"] == post.converged
+    report = (out / "report.md").read_text()
+    assert "autocorrelation" in report and "Laplace" in report
+    with pytest.raises(jaxcos.InputError, match="exists"):
+        write_uncertainty(post, data, str(out))
+
+
+def test_cli_bad_inputs(tmp_path, capsys):
+    assert main(["uncertainty", "measurements/matte2.csv", "--out", str(tmp_path / "o"),
+                 "--params", str(tmp_path / "missing.json")]) == 2
+    assert "missing.json" in capsys.readouterr().err
+    bad = tmp_path / "bad.csv"
+    bad.write_text("theta_i,theta_o,r,g,b\n0,10,0.1,0.1\n")
+    assert main(["uncertainty", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "bad.csv" in err and len(err.splitlines()) == 1
+    assert main(["uncertainty", "measurements/matte2.csv", "--out", str(tmp_path / "o"), "--walkers", "2"]) == 2
+    assert not (tmp_path / "o").exists()
