@@ -174,21 +174,27 @@ def _tau(sampler, discard=0):
 # --- linearised spreads and sensitivities ------------------------------------------
 
 
-def laplace(jac):
-    """Covariance ``(J^T J)^+`` of a least-squares optimum from the Jacobian of its whitened residuals.
+def laplace(jac, jac_noise=None):
+    """Covariance ``(J^T J - N)^+`` of a least-squares optimum from the Jacobian of its whitened residuals.
 
     Args:
         jac: ``(M, P)`` derivatives of ``(model - measured) / sigma`` with
             respect to the parameters.
+        jac_noise: ``(P, P)`` the part of ``J^T J`` that is the Jacobian's own
+            Monte Carlo noise (see :func:`uncertainty`); none by default.
 
     Returns:
-        ``(P, P)`` covariance (pseudo-inverse where a combination is not constrained).
+        ``(P, P)`` covariance: the pseudo-inverse of the information with
+        negative eigenvalues (noise larger than signal) set to 0.
     """
     jac = np.asarray(jac, float)
-    return np.linalg.pinv(jac.T @ jac, hermitian=True)
+    info = jac.T @ jac - (0.0 if jac_noise is None else np.asarray(jac_noise, float))
+    w, u = np.linalg.eigh(0.5 * (info + info.T))
+    keep = w > 1e-12 * max(np.max(np.abs(w)), 1e-300)
+    return (u[:, keep] / w[keep]) @ u[:, keep].T
 
 
-def sensitivity(jac, sigma):
+def sensitivity(jac, sigma, jac_noise=None):
     """Derivatives of the fitted parameters with respect to each measured value.
 
     Implicit differentiation of the optimality condition ``J^T r = 0`` of
@@ -198,11 +204,12 @@ def sensitivity(jac, sigma):
     Args:
         jac: ``(M, P)`` Jacobian of the whitened residuals.
         sigma: ``(M,)`` the standard deviation of each residual.
+        jac_noise: as in :func:`laplace`.
 
     Returns:
         ``(P, M)``: ``dv_p / dy_m``, parameter units per unit of the measured quantity.
     """
-    return laplace(jac) @ np.asarray(jac, float).T / np.asarray(sigma, float).reshape(1, -1)
+    return laplace(jac, jac_noise) @ np.asarray(jac, float).T / np.asarray(sigma, float).reshape(1, -1)
 
 
 # --- the jaxcos posterior -------------------------------------------------------------
@@ -222,6 +229,7 @@ class _Target(eqx.Module):
     sigma: jnp.ndarray
     anchor: jnp.ndarray
     slope: jnp.ndarray
+    jac_noise: jnp.ndarray
     v0: jnp.ndarray
     key: jnp.ndarray
     lobe_probs: jnp.ndarray
@@ -242,7 +250,8 @@ class _Target(eqx.Module):
     def log_prob(self, v):
         inside = jnp.all((v >= self.low) & (v <= self.high))
         r = (self.model(jnp.clip(v, self.low, self.high)) - self.measured) / self.sigma
-        return jnp.where(inside, -0.5 * jnp.sum(r * r), -jnp.inf)
+        d = jnp.clip(v, self.low, self.high) - self.v0
+        return jnp.where(inside, -0.5 * jnp.sum(r * r) + 0.5 * d @ self.jac_noise @ d, -jnp.inf)
 
 
 @eqx.filter_jit
@@ -359,8 +368,15 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
     hi = make_problem(meas, param, key=keys[0], walks=hi_walks, bounces=bounces, lobe_probs=probs)
     lo = make_problem(meas, param, key=keys[1], walks=lo_walks, bounces=lo_bounces, lobe_probs=probs)
     v0j = jnp.asarray(v0, dtype)
-    m_hi, jac_hi, est_hi = _value_and_jacobian(hi, v0j)
+    # Two halves under independent keys: their mean is the estimate, their
+    # difference measures the Jacobian's own noise, which J^T J would count as information.
+    halves = [_value_and_jacobian(dataclasses.replace(hi, key=k, walks=max(hi_walks // 2, 1)), v0j)
+              for k in jax.random.split(keys[0])]
+    m_hi = 0.5 * (halves[0][0] + halves[1][0])
+    jac_hi = 0.5 * (halves[0][1] + halves[1][1])
+    est_hi = halves[0][2]
     rel_hi = float(np.median(np.asarray(est_hi.stderr) / np.maximum(np.abs(np.asarray(est_hi.f)), 1e-12)))
+    rel_hi /= np.sqrt(2.0)
     n_res = meas.values.size
     if meas.std is not None:
         noise = np.asarray(meas.std, float)
@@ -370,20 +386,23 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
         noise_scale = float(np.sqrt(np.sum(resid ** 2) / max(n_res - param.size, 1)))
         noise = np.full_like(meas.values, noise_scale)
     sigma = np.sqrt(noise ** 2 + (rel_hi * m_hi) ** 2)
+    diff = ((halves[0][1] - halves[1][1]) / sigma[..., None]).reshape(-1, param.size)
+    jac_noise = 0.25 * diff.T @ diff  # E[J^T J] - J_true^T J_true for the mean of the halves
     if lo_walks:
         m_lo, jac_lo, _ = _value_and_jacobian(lo, v0j)
     else:
         m_lo, jac_lo = np.zeros_like(m_hi), np.zeros_like(jac_hi)
     target = _Target(param=param, query=lo.query, measured=jnp.asarray(meas.values, dtype),
                      sigma=jnp.asarray(sigma, dtype), anchor=jnp.asarray(m_hi - m_lo, dtype),
-                     slope=jnp.asarray(jac_hi - jac_lo, dtype), v0=v0j, key=keys[1],
+                     slope=jnp.asarray(jac_hi - jac_lo, dtype), jac_noise=jnp.asarray(jac_noise, dtype), v0=v0j,
+                     key=keys[1],
                      lobe_probs=jnp.asarray(probs, dtype), low=jnp.asarray(low, dtype), high=jnp.asarray(high, dtype),
                      scale=lo.scale, walks=lo_walks, bounces=lo_bounces)
 
     say("Laplace covariance and sensitivities from that Jacobian")
     jac_v = (jac_hi / sigma[..., None]).reshape(-1, param.size)
-    cov = laplace(jac_v)
-    sens = sensitivity(jac_v, sigma.reshape(-1)).reshape(param.size, *meas.values.shape)
+    cov = laplace(jac_v, jac_noise)
+    sens = sensitivity(jac_v, sigma.reshape(-1), jac_noise).reshape(param.size, *meas.values.shape)
     laplace_sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
 
     rng = np.random.default_rng(seed + 1)
