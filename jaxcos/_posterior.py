@@ -16,7 +16,11 @@ common random numbers,
 
 whose value and slope at the fit ``v0`` come from one high-budget estimate
 (``M_hi``, ``J_hi``: 8192 walks per incidence, forward-mode Jacobian) and only
-the curvature from the cheap estimate ``M_lo`` evaluated at every step. The
+the curvature from the cheap estimate ``M_lo`` evaluated at every step.
+``J_hi`` is the mean of two halves under independent keys: ``N = D^T D / 4``,
+with ``D`` their whitened difference, is the expected share of ``J^T J`` that
+is the Jacobian's own noise, and the log-likelihood adds ``dv^T N dv / 2``
+back (at 8192 walks the noise doubles the apparent information about ``g1``). The
 remaining error of ``M_hi`` at ``v0`` is mapped through the sensitivities into
 a Monte Carlo spread of the parameters that the reported intervals include,
 and the report compares the sampled model at posterior draws with
