@@ -247,9 +247,7 @@ class _Target(eqx.Module):
         """The model in the file's quantity, ``(N, 3)``."""
         if self.walks == 0:  # the linearisation alone
             return self.anchor + self.slope @ (v - self.v0)
-        est = simulate(self.param.physical_to_material(v), self.query, self.key, walks=self.walks,
-                       bounces=self.bounces, lobe_probs=self.lobe_probs)
-        return self.scale * est.f + self.anchor + self.slope @ (v - self.v0)
+        return self.scale * _estimate(self, v).f + self.anchor + self.slope @ (v - self.v0)
 
     def log_prob(self, v):
         inside = jnp.all((v >= self.low) & (v <= self.high))
@@ -260,14 +258,19 @@ class _Target(eqx.Module):
 
 @eqx.filter_jit
 def _value_and_jacobian_jit(problem, v):
-    fn = lambda u: problem.scale * simulate(problem.param.physical_to_material(u), problem.query, problem.key,
-                                            walks=problem.walks, bounces=problem.bounces,
-                                            lobe_probs=problem.lobe_probs).f
-    # Forward mode, all tangents in one pass of the walk (no tape).
-    _, jac = jax.vmap(lambda e: jax.jvp(fn, (v,), (e,)), out_axes=(None, -1))(jnp.eye(v.shape[0], dtype=v.dtype))
-    est = simulate(problem.param.physical_to_material(v), problem.query, problem.key, walks=problem.walks,
-                   bounces=problem.bounces, lobe_probs=problem.lobe_probs)
+    def fn(u):
+        est = _estimate(problem, u)
+        return problem.scale * est.f, est
+
+    # Forward mode (all tangents in one pass of the walk, no tape); the estimate comes along as aux.
+    jac, est = jax.jacfwd(fn, has_aux=True)(v)
     return est, jac
+
+
+def _estimate(problem, v):
+    """The estimate at the physical values ``v`` under the key, budget and lobe probabilities of ``problem``."""
+    return simulate(problem.param.physical_to_material(v), problem.query, problem.key, walks=problem.walks,
+                    bounces=problem.bounces, lobe_probs=problem.lobe_probs)
 
 
 def _value_and_jacobian(problem, v):
@@ -418,8 +421,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
                          progress=say)
 
     say(f"propagating the Monte Carlo error of the anchor: {replicas} independent estimates at the fit")
-    reps = np.stack([hi.scale * np.asarray(simulate(material, hi.query, k, walks=hi_walks, bounces=bounces,
-                                                    lobe_probs=probs).f, float)
+    reps = np.stack([hi.scale * np.asarray(_estimate(dataclasses.replace(hi, key=k), v0j).f, float)
                      for k in jax.random.split(keys[2], replicas)])
     shifts = (reps - reps.mean(axis=0)).reshape(replicas, -1) @ sens.reshape(param.size, -1).T
     mc_cov = np.atleast_2d(np.cov(shifts.T))
@@ -442,9 +444,8 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
     say(f"checking the control-variate model at {checks} posterior draws against independent estimates")
     draws = chain.samples[rng.choice(samples.shape[0], size=min(max(checks, 64), samples.shape[0]), replace=False)]
     predictive = _in_batches(lambda vs: _batch_model(target, vs), walkers // 2, dtype)(draws)
-    indep = np.stack([hi.scale * np.asarray(simulate(param.physical_to_material(jnp.asarray(d, dtype)), hi.query,
-                                                     keys[2], walks=hi_walks, bounces=bounces, lobe_probs=probs).f)
-                      for d in draws[:checks]])
+    check = dataclasses.replace(hi, key=keys[2])
+    indep = np.stack([hi.scale * np.asarray(_estimate(check, jnp.asarray(d, dtype)).f) for d in draws[:checks]])
     # The independent estimate has an error of its own, as large as the anchor's;
     # what the discrepancy has beyond it is the error of the sampled model.
     disc2 = np.mean(((predictive[:checks] - indep) / noise) ** 2)
