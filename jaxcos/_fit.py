@@ -43,6 +43,9 @@ FIT_BOUNCES = 128
 unfinished walks for the four published products (256 bounces: 2.2e-5), at
 half the cost; every fit reports what its walks left unfinished."""
 
+SCREEN_STEPS = 5
+"""Levenberg-Marquardt steps each start gets in the screen (at a sixteenth of the fit's budget)."""
+
 # Free parameters of each variant, in order; sizes follow.
 _FREE = {
     "two_lobe": ("c_d", "albedo_d", "g1", "g2", "w_g", "albedo_p", "alpha_p", "theta_p"),
@@ -241,9 +244,57 @@ def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe
 # --- solvers ----------------------------------------------------------------------
 
 
+class LevenbergMarquardt(optx.AbstractGaussNewton):
+    """optimistix's Levenberg-Marquardt, also stopped when the loss stops falling.
+
+    Under a fixed key the objective is rough along the parameters that move
+    sampled directions (``docs/derivatives.md``). Near its optimum LM then
+    creeps: the damping grows after a few rejected steps, and each accepted
+    step lowers the loss by a few hundredths of a chi-square unit, far below
+    what the data can tell apart, at the cost of a Jacobian per step. Besides
+    optimistix's Cauchy test on ``rtol`` and ``atol``, this solver stops after
+    ``patience`` consecutive accepted steps that each lowered the loss by less
+    than ``loss_rtol`` of it.
+    """
+
+    rtol: float
+    atol: float
+    norm: object
+    descent: optx.DampedNewtonDescent
+    search: optx.ClassicalTrustRegion
+    verbose: object
+    loss_rtol: float
+    patience: int
+
+    def __init__(self, rtol, atol, loss_rtol=2e-4, patience=2):
+        self.rtol, self.atol, self.norm = rtol, atol, optx.max_norm
+        self.descent = optx.DampedNewtonDescent()
+        self.search = optx.ClassicalTrustRegion()
+        self.verbose = lambda **kwargs: None
+        self.loss_rtol, self.patience = loss_rtol, patience
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        return super().init(fn, y, args, options, f_struct, aux_struct, tags), jnp.array(0)
+
+    def step(self, fn, y, args, options, state, tags):
+        inner, small = state
+        y, new, aux = super().step(fn, y, args, options, inner, tags)
+        before, after = jnp.sum(inner.f_info.residual ** 2), jnp.sum(new.f_info.residual ** 2)
+        accepted = (new.num_accepted_steps > inner.num_accepted_steps) & (inner.num_accepted_steps >= 1)
+        small = jnp.where(accepted, jnp.where(before - after < self.loss_rtol * before, small + 1, 0), small)
+        new = eqx.tree_at(lambda s: s.terminate, new, new.terminate | (small >= self.patience))
+        return y, (new, small), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return super().terminate(fn, y, args, options, state[0], tags)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return super().postprocess(fn, y, aux, args, options, state[0], tags, result)
+
+
 @eqx.filter_jit
 def _lm(problem, x0, max_steps, rtol, atol):
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    solver = LevenbergMarquardt(rtol=rtol, atol=atol)
     sol = optx.least_squares(lambda x, p: p.residuals(x), solver, x0, args=problem, max_steps=max_steps, throw=False)
     return sol.value, problem.loss(sol.value), sol.stats["num_steps"]
 
@@ -267,15 +318,48 @@ def solve_powell(problem, x0, *, max_evaluations=20000, xtol=1e-4, ftol=1e-8):
 # --- starts -----------------------------------------------------------------------
 
 
-def random_starts(param, n, rng):
-    """``n`` starting vectors drawn uniformly over the physical ranges (``alpha_p`` log-uniformly in [0.003, 1])."""
+def highlight_tilt(meas):
+    """The platelet tilt ``theta_p`` (degrees) that the measured highlight points to, or ``None``.
+
+    Mirror-like platelets tilted by ``theta_p`` in the plane of incidence
+    reflect at ``theta_o = theta_i + 2 theta_p`` (MODEL.md section 2). For each
+    incidence with at least five in-plane points, the brightest point relative
+    to that incidence's median gives one estimate; the result is their median.
+    A narrow highlight (``alpha_p`` of a few thousandths) is invisible to a
+    random start: its basin is a fraction of a degree wide in ``theta_p``.
+    """
+    inplane = np.isclose(np.asarray(meas.phi_o, float) % 180.0, 0.0)
+    values = np.mean(meas.values, axis=1)
+    tilts = []
+    for ti in np.unique(meas.theta_i[inplane]):
+        sel = inplane & (meas.theta_i == ti)
+        if sel.sum() < 5:
+            continue
+        to = np.where(np.isclose(meas.phi_o[sel] % 360.0, 180.0), -meas.theta_o[sel], meas.theta_o[sel])
+        brightest = np.argmax(values[sel] / max(np.median(values[sel]), 1e-12))
+        tilts.append(0.5 * (to[brightest] - ti))
+    if not tilts:
+        return None
+    return float(np.clip(np.median(tilts), 0.0, 89.0))
+
+
+def random_starts(param, n, rng, tilt=None):
+    """``n`` starting vectors drawn uniformly over the physical ranges (``alpha_p`` log-uniformly in [0.003, 1]).
+
+    With a ``tilt`` (from :func:`highlight_tilt`), a third of them take that
+    ``theta_p`` (within half a degree) and a narrow ``alpha_p`` (log-uniform in
+    [0.001, 0.05]): the starts of a near-mirror highlight.
+    """
     draws = []
-    for _ in range(n):
+    for i in range(n):
         values = dict(
             c_d=rng.uniform(0.05, 0.95), albedo_d=rng.uniform(0.3, 0.99, 3), g1=rng.uniform(-0.3, 0.9),
             g2=rng.uniform(-0.6, 0.3), w_g=rng.uniform(0.2, 0.95), albedo_p=rng.uniform(0.3, 0.99, 3),
             alpha_p=10 ** rng.uniform(-2.5, 0), theta_p=rng.uniform(0, 30), t=rng.uniform(1, 30), phi_p=0.0,
         )
+        if tilt is not None and i >= n - n // 3:
+            values.update(theta_p=np.clip(tilt + rng.uniform(-0.5, 0.5), 0.0, 89.9),
+                          alpha_p=10 ** rng.uniform(-3, np.log10(0.05)))
         draws.append(np.concatenate([np.atleast_1d(_TRANSFORMS[n_][1](values[n_])) for n_ in param.names]))
     return jnp.asarray(np.stack(draws), dtype=jnp.result_type(float))
 
@@ -345,7 +429,9 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         method: ``"lm"`` (Levenberg-Marquardt, optimistix) or ``"powell"`` (SciPy).
         seed: seeds the Monte Carlo key (fixed for the whole fit) and the random starts.
         walks, bounces: the Monte Carlo budget of the objective.
-        starts: number of random starts screened, besides the default start.
+        starts: number of random starts screened, besides the default start; a
+            third of them start at the tilt of the measured highlight with a
+            narrow ``alpha_p`` (:func:`highlight_tilt`).
         refine: number of best screened starts refined at the full budget.
         fit_t, fit_phi: also fit the optical thickness ``t`` (else fixed at ``t``)
             or the tilt azimuth ``phi_p`` (else 0).
@@ -372,10 +458,11 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         candidates = [(0, x_default)]
     else:
         rng = np.random.default_rng(seed)
-        pool = jnp.concatenate([x_default[None], random_starts(param, starts, rng)])
+        tilt = highlight_tilt(meas) if "theta_p" in param.names else None
+        pool = jnp.concatenate([x_default[None], random_starts(param, starts, rng, tilt)])
         screen = dataclasses.replace(problem, walks=max(walks // 4, 8), bounces=max(bounces // 4, 16))  # 1/16 cost
         say(f"screening {pool.shape[0]} starts with a short Levenberg-Marquardt at a quarter of the walks and bounces")
-        xs, losses, _ = jax.vmap(lambda x: _lm(screen, x, 5, 1e-3, 1e-3))(pool)
+        xs, losses, _ = jax.vmap(lambda x: _lm(screen, x, SCREEN_STEPS, 1e-3, 1e-3))(pool)
         losses = np.where(np.isfinite(np.asarray(losses)), np.asarray(losses), np.inf)
         order = np.argsort(losses)[:refine]
         candidates = [(int(i), xs[i]) for i in order]
@@ -392,14 +479,14 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
             x, loss, steps = solve_powell(prob, x0)
             n_eval += steps
         results.append((index, x, loss, steps, prob))
-    say("evaluating the fitted model")
     index, x, loss, steps, problem = min(results, key=lambda r: r[2])
+    same = [r for r in results if abs(r[2] - loss) <= 1e-3 * loss + 1.0]
+    say("evaluating the fitted model")
     est = problem.estimate(x)
     model = np.asarray(problem.scale * est.f)
     model_std = np.asarray(problem.scale * est.stderr)
     elapsed = time.perf_counter() - t0
     record = _statistics(meas, model, loss, param.size)
-    same = [r for r in results if abs(r[2] - loss) <= 1e-3 * loss + 1.0]
     record.update(
         iterations=int(steps), time_s=round(elapsed, 2), method=method, variant=variant, n_evaluations=int(n_eval),
         walks=int(walks), bounces=int(bounces), seed=int(seed), n_params=int(param.size),

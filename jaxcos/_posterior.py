@@ -7,24 +7,37 @@ entries: ``c_d``, ``albedo_d[0..2]``, ..., ``theta_p`` in degrees) is
 
 with a uniform prior on the physical ranges and a Gaussian likelihood. The
 model ``m`` is a Monte Carlo estimate, and with a fixed key its error is not
-noise the chain can average: a cheap estimate in the loop makes the posterior
-too narrow (its error grows with the distance from the fit and acts as an
-extra penalty). The chain therefore samples a *Taylor control variate* under
-common random numbers,
+noise the chain can average. A cheap estimate in the loop makes the posterior
+too narrow and biased: the expected loss of a fixed-key estimate is the true
+loss plus the estimate's variance, so its error acts as a penalty that grows
+away from where it was fixed and pulls towards parameters where the variance
+is small. By default the chain therefore samples the *high-budget
+linearisation* within the prior's bounds,
 
-    m(v) = M_lo(v) - M_lo(v0) - J_lo (v - v0) + M_hi(v0) + J_hi (v - v0),
+    m(v) = M_hi(v0) + J_hi (v - v0),
 
-whose value and slope at the fit ``v0`` come from one high-budget estimate
-(``M_hi``, ``J_hi``: 8192 walks per incidence, forward-mode Jacobian) and only
-the curvature from the cheap estimate ``M_lo`` evaluated at every step.
-``J_hi`` is the mean of two halves under independent keys: ``N = D^T D / 4``,
-with ``D`` their whitened difference, is the expected share of ``J^T J`` that
-is the Jacobian's own noise, and the log-likelihood adds ``dv^T N dv / 2``
-back (at 8192 walks the noise doubles the apparent information about ``g1``). The
-remaining error of ``M_hi`` at ``v0`` is mapped through the sensitivities into
-a Monte Carlo spread of the parameters that the reported intervals include,
-and the report compares the sampled model at posterior draws with
-independent high-budget estimates.
+from one estimate at the anchor ``v0`` (8192 walks per incidence). The
+anchor starts at the fit and moves once, by a Gauss-Newton step, to the
+optimum of the first linearisation, where the linearisation is made again:
+the fit's own cheap estimate leaves it up to two Laplace widths from the
+optimum. The slopes ``J_hi`` are central differences under common random
+numbers with steps of half a posterior width (from a pilot at an eighth of
+the budget), not forward-mode derivatives: along the parameters that move
+sampled directions (``g1``, ``alpha_p``, ...) the fixed-key estimate has
+narrow steep features, its pointwise derivative is heavy-tailed, and
+``J^T J`` from it overstated the information about ``g1`` up to six-fold,
+depending on the key. ``J_hi`` is the mean of two halves under independent
+keys: ``N = D^T D / 4``, with ``D`` their whitened difference, is the
+expected share of ``J^T J`` that is the slopes' own noise, and the
+log-likelihood adds ``dv^T N dv / 2`` back. The remaining error of ``M_hi``
+at ``v0`` is mapped through the sensitivities into a Monte Carlo spread of
+the parameters that the reported intervals include.
+
+``lo_walks > 0`` adds the curvature of a cheap estimate (a Taylor control
+variate, ``M_lo(v) - M_lo(v0) - J_lo (v - v0)``) for posteriors far from
+Gaussian; its coverage is measured in ``benchmarks/RESULTS.md`` and is worse.
+The report compares the sampled model at posterior draws with independent
+high-budget estimates.
 
 Example::
 
@@ -60,10 +73,12 @@ MAX_STEPS = 3000
 """The longest chain, in ensemble steps, that :func:`uncertainty` runs by default."""
 CHAIN_TAUS = 50
 """A chain shorter than this many integrated autocorrelation times is reported as too short (emcee's rule)."""
-LO_WALKS, LO_BOUNCES = 32, 64
-"""The budget of the cheap estimate ``M_lo`` evaluated at every step of the chain."""
+LO_WALKS, LO_BOUNCES = 0, 64
+"""The budget of the cheap estimate ``M_lo`` evaluated at every step of the chain (0: the linearisation alone)."""
 HI_WALKS = 8192
-"""Walks per incidence of the value ``M_hi(v0)`` and Jacobian ``J_hi(v0)`` at the fit (bounces as in the fit)."""
+"""Walks per incidence of the value ``M_hi(v0)`` and slopes ``J_hi(v0)`` at the anchor (bounces as in the fit)."""
+ANCHORS = 2
+"""Linearisations made: at the fit, then at the optimum of the first (one Gauss-Newton step)."""
 
 
 # --- a sampler for any batched log-density ---------------------------------------------
@@ -256,27 +271,50 @@ class _Target(eqx.Module):
         return jnp.where(inside, -0.5 * jnp.sum(r * r) + 0.5 * d @ self.jac_noise @ d, -jnp.inf)
 
 
-@eqx.filter_jit
-def _value_and_jacobian_jit(problem, v):
-    def fn(u):
-        est = _estimate(problem, u)
-        return problem.scale * est.f, est
-
-    # Forward mode (all tangents in one pass of the walk, no tape); the estimate comes along as aux.
-    jac, est = jax.jacfwd(fn, has_aux=True)(v)
-    return est, jac
-
-
 def _estimate(problem, v):
     """The estimate at the physical values ``v`` under the key, budget and lobe probabilities of ``problem``."""
     return simulate(problem.param.physical_to_material(v), problem.query, problem.key, walks=problem.walks,
                     bounces=problem.bounces, lobe_probs=problem.lobe_probs)
 
 
-def _value_and_jacobian(problem, v):
-    """The model ``(N, 3)`` in the file's quantity, its Jacobian ``(N, 3, P)`` in physical units, and the estimate."""
-    est, jac = _value_and_jacobian_jit(problem, v)
-    return problem.scale * np.asarray(est.f, float), np.asarray(jac, float), est
+@eqx.filter_jit
+def _batch_estimate(problem, vs):
+    return jax.vmap(lambda v: _estimate(problem, v))(vs)
+
+
+def _first_steps(param, v):
+    """Pilot finite-difference steps: 1% of each parameter's range, 5% of the value for ``alpha_p`` and ``t``."""
+    low, high = param.bounds()
+    step = 0.01 * (high - low)
+    i = 0
+    for name, part in param._split(np.asarray(v, float)):
+        if name in ("alpha_p", "t"):
+            step[i:i + part.shape[0]] = 0.05 * np.abs(part)
+        i += part.shape[0]
+    return step
+
+
+def _value_and_secants(problem, v, step):
+    """The model ``(N, 3)`` at ``v`` and its slopes ``(N, 3, P)`` by central differences under one key.
+
+    Common random numbers make each difference a smooth function of the step.
+    The slope is that of the estimate over ``v +- step`` (clipped to the
+    bounds), not its derivative at ``v``: along the parameters that move
+    sampled directions the fixed-key estimate has narrow, steep features
+    (``docs/derivatives.md``) and its forward-mode derivative is heavy-tailed,
+    while the posterior only sees the model over its own width. Returns the
+    model, the slopes and the estimate at ``v``.
+    """
+    v = np.asarray(v, float)
+    low, high = problem.param.bounds()
+    eye = np.diag(step)
+    plus, minus = np.minimum(v + eye, high), np.maximum(v - eye, low)
+    dtype = jnp.result_type(float)
+    est = _batch_estimate(problem, jnp.asarray(np.concatenate([v[None], plus, minus]), dtype))
+    f = problem.scale * np.asarray(est.f, float)
+    p = v.shape[0]
+    jac = (f[1:p + 1] - f[p + 1:]) / np.diag(plus - minus)[:, None, None]
+    return f[0], np.moveaxis(jac, 0, -1), jax.tree.map(lambda a: a[0], est)
 
 
 @eqx.filter_jit
@@ -345,8 +383,9 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
             default :func:`jaxcos.fit` runs first.
         seed: seeds the Monte Carlo keys and the sampler.
         walkers, max_steps: the ensemble and the longest chain.
-        lo_walks, lo_bounces: budget of the estimate evaluated at each step;
-            ``lo_walks=0`` samples the high-budget linearisation alone.
+        lo_walks, lo_bounces: budget of a cheap estimate whose curvature is
+            added to the linearisation at each step; ``0`` (the default)
+            samples the high-budget linearisation alone.
         hi_walks: walks per incidence of the anchor at the fit (bounces as in the fit).
         checks: posterior draws at which the control-variate model is compared
             with independent high-budget estimates.
@@ -370,20 +409,9 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
     bounces = int(fit_result.record.get("bounces", FIT_BOUNCES))
     dtype = jnp.result_type(float)
 
-    say(f"value and Jacobian at the fit with {hi_walks} walks per incidence")
-    keys = jax.random.split(jax.random.key(seed), 3)
+    keys = jax.random.split(jax.random.key(seed), 4)
     hi = make_problem(meas, param, key=keys[0], walks=hi_walks, bounces=bounces, lobe_probs=probs)
     lo = make_problem(meas, param, key=keys[1], walks=lo_walks, bounces=lo_bounces, lobe_probs=probs)
-    v0j = jnp.asarray(v0, dtype)
-    # Two halves under independent keys: their mean is the estimate, their
-    # difference measures the Jacobian's own noise, which J^T J would count as information.
-    halves = [_value_and_jacobian(dataclasses.replace(hi, key=k, walks=max(hi_walks // 2, 1)), v0j)
-              for k in jax.random.split(keys[0])]
-    m_hi = 0.5 * (halves[0][0] + halves[1][0])
-    jac_hi = 0.5 * (halves[0][1] + halves[1][1])
-    est_hi = halves[0][2]
-    rel_hi = float(np.median(np.asarray(est_hi.stderr) / np.maximum(np.abs(np.asarray(est_hi.f)), 1e-12)))
-    rel_hi /= np.sqrt(2.0)
     n_res = meas.values.size
     if meas.std is not None:
         noise = np.asarray(meas.std, float)
@@ -392,11 +420,41 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
         resid = fit_result.model - meas.values
         noise_scale = float(np.sqrt(np.sum(resid ** 2) / max(n_res - param.size, 1)))
         noise = np.full_like(meas.values, noise_scale)
-    sigma = np.sqrt(noise ** 2 + (rel_hi * m_hi) ** 2)
-    diff = ((halves[0][1] - halves[1][1]) / sigma[..., None]).reshape(-1, param.size)
-    jac_noise = 0.25 * diff.T @ diff  # E[J^T J] - J_true^T J_true for the mean of the halves
+
+    # Steps of half a posterior width, from a pilot at an eighth of the budget.
+    say(f"slopes at the fit by central differences: a pilot with {max(hi_walks // 8, 1)} walks per incidence")
+    first = _first_steps(param, v0)
+    pilot = dataclasses.replace(hi, key=keys[3], walks=max(hi_walks // 8, 1))
+    _, jac_pilot, _ = _value_and_secants(pilot, v0, first)
+    pilot_sd = np.sqrt(np.maximum(np.diag(laplace((jac_pilot / noise[..., None]).reshape(-1, param.size))), 0.0))
+    step = np.clip(0.5 * pilot_sd, 0.01 * first, np.minimum(10 * first, 0.25 * (high - low)))
+
+    # The fit's own estimate is cheap and biased towards parameters where its
+    # Monte Carlo variance is small: one Gauss-Newton step on the high-budget
+    # linearisation moves the anchor to that linearisation's optimum, where it is made again.
+    anchor = v0
+    for rank in range(ANCHORS):
+        say(f"value and slopes at {'the fit' if rank == 0 else 'the refined anchor'} with {hi_walks} walks "
+            "per incidence")
+        # Two halves under independent keys: their mean is the estimate, their
+        # difference measures the slopes' own noise, which J^T J would count as information.
+        halves = [_value_and_secants(dataclasses.replace(hi, key=k, walks=max(hi_walks // 2, 1)), anchor, step)
+                  for k in jax.random.split(jax.random.fold_in(keys[0], rank))]
+        m_hi = 0.5 * (halves[0][0] + halves[1][0])
+        jac_hi = 0.5 * (halves[0][1] + halves[1][1])
+        est_hi = halves[0][2]
+        rel_hi = float(np.median(np.asarray(est_hi.stderr) / np.maximum(np.abs(np.asarray(est_hi.f)), 1e-12)))
+        rel_hi /= np.sqrt(2.0)
+        sigma = np.sqrt(noise ** 2 + (rel_hi * m_hi) ** 2)
+        diff = ((halves[0][1] - halves[1][1]) / sigma[..., None]).reshape(-1, param.size)
+        jac_noise = 0.25 * diff.T @ diff  # E[J^T J] - J_true^T J_true for the mean of the halves
+        jac_v = (jac_hi / sigma[..., None]).reshape(-1, param.size)
+        if rank + 1 < ANCHORS:
+            resid = ((m_hi - meas.values) / sigma).reshape(-1)
+            anchor = np.clip(anchor - laplace(jac_v, jac_noise) @ jac_v.T @ resid, low, high)
+    v0j = jnp.asarray(anchor, dtype)
     if lo_walks:
-        m_lo, jac_lo, _ = _value_and_jacobian(lo, v0j)
+        m_lo, jac_lo, _ = _value_and_secants(lo, anchor, step)
     else:
         m_lo, jac_lo = np.zeros_like(m_hi), np.zeros_like(jac_hi)
     target = _Target(param=param, query=lo.query, measured=jnp.asarray(meas.values, dtype),
@@ -406,8 +464,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
                      lobe_probs=jnp.asarray(probs, dtype), low=jnp.asarray(low, dtype), high=jnp.asarray(high, dtype),
                      scale=lo.scale, walks=lo_walks, bounces=lo_bounces)
 
-    say("Laplace covariance and sensitivities from that Jacobian")
-    jac_v = (jac_hi / sigma[..., None]).reshape(-1, param.size)
+    say("Laplace covariance and sensitivities from those slopes")
     cov = laplace(jac_v, jac_noise)
     sens = sensitivity(jac_v, sigma.reshape(-1), jac_noise).reshape(param.size, *meas.values.shape)
     laplace_sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
@@ -417,7 +474,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
     log_prob = _in_batches(lambda vs: _batch_log_prob(target, vs), walkers // 2, dtype)
     width = np.where(np.isfinite(laplace_sd) & (laplace_sd > 0), laplace_sd, 1e-3 * (high - low))
     width = np.minimum(width, 0.1 * (high - low))
-    chain = run_ensemble(log_prob, np.clip(v0, low, high), width, seed=seed, walkers=walkers, max_steps=max_steps,
+    chain = run_ensemble(log_prob, anchor, width, seed=seed, walkers=walkers, max_steps=max_steps,
                          progress=say)
 
     say(f"propagating the Monte Carlo error of the anchor: {replicas} independent estimates at the fit")
@@ -434,7 +491,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
     q_noise = np.percentile(chain.samples, [16, 84], axis=0)
     summary = {}
     for i, name in enumerate(labels):
-        summary[name] = dict(fit=float(v0[i]), median=float(q[2, i]), p16=float(q[1, i]), p84=float(q[3, i]),
+        summary[name] = dict(fit=float(v0[i]), anchor=float(anchor[i]), median=float(q[2, i]), p16=float(q[1, i]), p84=float(q[3, i]),
                              **{"p2.5": float(q[0, i]), "p97.5": float(q[4, i])},
                              p16_noise_only=float(q_noise[0, i]), p84_noise_only=float(q_noise[1, i]),
                              mc_sd=float(np.sqrt(mc_cov[i, i])), laplace_sd=float(laplace_sd[i]),
@@ -462,6 +519,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
         budget=dict(lo_walks=int(lo_walks), lo_bounces=int(lo_bounces), hi_walks=int(hi_walks), bounces=bounces),
         noise="file std columns" if noise_scale is None else "estimated from the fit's residuals",
         noise_scale=noise_scale,
+        slope_steps={name: float(h) for name, h in zip(labels, step)},
         mc_anchor_relative_error=rel_hi,
         mc_anchor_error_over_noise=float(np.median(rel_hi * m_hi / noise)),
         mc_model_error_over_noise=model_error,
@@ -552,7 +610,9 @@ def uncertainty_report(post, meas):
                      f"{s['mc_sd']:.3g} | {s['laplace_sd']:.3g} | {s['tau']:.0f} | {s['ess']:.0f} |")
     notes = _laplace_notes(post)
     lines += ["", "## Laplace cross-check", "",
-              "The Laplace spread is `(J^T J)^-1` from the Levenberg-Marquardt Jacobian at the fit. "
+              "The Laplace spread is `(J^T J - N)^-1` at the fit, with `J` the slopes of the high-budget estimate (central "
+              "differences over half a posterior width, under common random numbers; the forward-mode Jacobian of "
+              "the fit is heavy-tailed in the direction parameters) and `N` their own noise. "
               + ("Where it disagrees with the chain:" if notes else "It agrees with the chain within a factor 1.5 "
                  "for every parameter."), ""]
     lines += [f"- {n}" for n in notes]

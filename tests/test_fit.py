@@ -8,7 +8,9 @@ from scipy.stats import chi2
 
 import jaxcos
 from jaxcos._cli import main
-from jaxcos._fit import fit, make_problem, parameterization
+import optimistix as optx
+
+from jaxcos._fit import LevenbergMarquardt, fit, highlight_tilt, make_problem, parameterization
 from jaxcos._measurements import Measurements
 
 # The data are made by the fit's own estimator (same key, budget and lobe
@@ -76,6 +78,52 @@ def test_fit_started_at_truth_stays():
     result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, seed=SEED, start=TRUTH)
     delta = _delta_chi2(result)
     assert -1e-6 * result.record["loss"] <= delta < CHI2_BOUND, delta
+
+
+def _rosenbrock(x, args):
+    return jnp.stack([1.0 - x[0], 10.0 * (x[1] - x[0] ** 2)])
+
+
+@pytest.mark.parametrize("loss_rtol, patience, stops_early", [(0.0, 2, False), (1.0, 2, True), (1.0, 5, True)])
+def test_levenberg_marquardt_stops_when_the_loss_stops_falling(loss_rtol, patience, stops_early):
+    """With the Cauchy test off, only the loss rule ends the solve: after ``patience`` small accepted steps."""
+    solver = LevenbergMarquardt(rtol=0.0, atol=0.0, loss_rtol=loss_rtol, patience=patience)
+    sol = optx.least_squares(_rosenbrock, solver, jnp.array([-1.2, 1.0]), max_steps=60, throw=False)
+    steps = int(sol.stats["num_steps"])
+    if stops_early:
+        # Every accepted step lowers the loss by less than all of it: the first acceptance is the start,
+        # then `patience` accepted steps (and any rejected ones between them).
+        assert patience + 1 <= steps < 60, steps
+    else:
+        assert steps == 60
+        np.testing.assert_allclose(sol.value, [1.0, 1.0], atol=1e-4)
+
+
+def test_levenberg_marquardt_agrees_with_optimistix_on_a_smooth_problem():
+    ours = optx.least_squares(_rosenbrock, LevenbergMarquardt(rtol=1e-8, atol=1e-8), jnp.array([-1.2, 1.0]),
+                              max_steps=200)
+    theirs = optx.least_squares(_rosenbrock, optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8), jnp.array([-1.2, 1.0]),
+                                max_steps=200)
+    np.testing.assert_allclose(ours.value, theirs.value, atol=1e-5)
+    np.testing.assert_allclose(ours.value, [1.0, 1.0], atol=1e-4)
+
+
+def test_highlight_tilt_finds_a_near_mirror_highlight():
+    """A narrow highlight at theta_o = theta_i + 2 theta_p gives theta_p back within half the viewing step."""
+    mirror = jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=0.95, albedo_d=0.8, g1=0.5, g2=0.0, w_g=1.0,
+                                                  albedo_p=0.8, alpha_p=0.005, theta_p=7.0),))
+    ti = np.repeat([10.0, 30.0, 50.0], 41)
+    to = np.tile(np.arange(-60.0, 101.0, 4.0)[:41], 3)
+    keep = to < 89
+    ti, to = ti[keep], to[keep]
+    est = jaxcos.simulate(mirror, jaxcos.make_query(ti, to), jax.random.key(0), walks=16, bounces=8)
+    values = np.pi * np.asarray(est.f, float)
+    meas = Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros_like(ti), values=values, std=None,
+                        quantity="reflectance_factor", metadata={}, path="mirror.csv")
+    assert abs(highlight_tilt(meas) - 7.0) <= 1.0
+    off_plane = Measurements(theta_i=ti, theta_o=to, phi_o=np.full_like(ti, 90.0), values=values, std=None,
+                             quantity="reflectance_factor", metadata={}, path="mirror.csv")
+    assert highlight_tilt(off_plane) is None
 
 
 def test_parameterization_round_trip():
