@@ -299,6 +299,13 @@ def _lm(problem, x0, max_steps, rtol, atol):
     return sol.value, problem.loss(sol.value), sol.stats["num_steps"]
 
 
+@eqx.filter_jit
+def _screen(problem, xs):
+    """A few Levenberg-Marquardt steps from each row of ``xs``, batched; returns the ends and their losses."""
+    ends, losses, _ = jax.vmap(lambda x: _lm(problem, x, SCREEN_STEPS, 1e-3, 1e-3))(xs)
+    return ends, losses
+
+
 def solve_lm(problem, x0, *, max_steps=40, rtol=1e-4, atol=1e-5):
     """Levenberg-Marquardt from ``x0``; returns ``(x, loss, steps)``."""
     x, loss, steps = _lm(problem, x0, max_steps, rtol, atol)
@@ -462,7 +469,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         pool = jnp.concatenate([x_default[None], random_starts(param, starts, rng, tilt)])
         screen = dataclasses.replace(problem, walks=max(walks // 4, 8), bounces=max(bounces // 4, 16))  # 1/16 cost
         say(f"screening {pool.shape[0]} starts with a short Levenberg-Marquardt at a quarter of the walks and bounces")
-        xs, losses, _ = jax.vmap(lambda x: _lm(screen, x, SCREEN_STEPS, 1e-3, 1e-3))(pool)
+        xs, losses = _screen(screen, pool)
         losses = np.where(np.isfinite(np.asarray(losses)), np.asarray(losses), np.inf)
         order = np.argsort(losses)[:refine]
         candidates = [(int(i), xs[i]) for i in order]

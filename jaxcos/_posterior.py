@@ -17,12 +17,16 @@ linearisation* within the prior's bounds,
     m(v) = M_hi(v0) + J_hi (v - v0),
 
 from one estimate at the anchor ``v0`` (8192 walks per incidence). The
-anchor starts at the fit and moves once, by a Gauss-Newton step, to the
-optimum of the first linearisation, where the linearisation is made again:
-the fit's own cheap estimate leaves it up to two Laplace widths from the
-optimum. The slopes ``J_hi`` are central differences under common random
-numbers with steps of half a posterior width (from a pilot at an eighth of
-the budget), not forward-mode derivatives: along the parameters that move
+anchor starts at the fit and moves by up to two Gauss-Newton steps towards
+the optimum of the last linearisation, where the linearisation is made
+again: the fit's own cheap estimate leaves it two or more Laplace widths from
+the optimum. Each step is clipped to ``TRUST`` difference steps per parameter,
+and kept only if the data fit the new anchor better. The chain stays within
+``REGION`` difference steps of the anchor, where the linearisation holds;
+the report says when a posterior reaches that edge. The slopes ``J_hi`` are
+central differences under common random numbers with steps of half a
+posterior width (from a pilot at an eighth of the budget), not forward-mode
+derivatives: along the parameters that move
 sampled directions (``g1``, ``alpha_p``, ...) the fixed-key estimate has
 narrow steep features, its pointwise derivative is heavy-tailed, and
 ``J^T J`` from it overstated the information about ``g1`` up to six-fold,
@@ -69,7 +73,7 @@ UNCERTAINTY_FILES = ("posterior.json", "report.md", "corner.png", "predictive.pn
 
 WALKERS = 32
 """Ensemble size: more than twice the twelve parameters of the two-lobe model."""
-MAX_STEPS = 3000
+MAX_STEPS = 20000
 """The longest chain, in ensemble steps, that :func:`uncertainty` runs by default."""
 CHAIN_TAUS = 50
 """A chain shorter than this many integrated autocorrelation times is reported as too short (emcee's rule)."""
@@ -77,8 +81,14 @@ LO_WALKS, LO_BOUNCES = 0, 64
 """The budget of the cheap estimate ``M_lo`` evaluated at every step of the chain (0: the linearisation alone)."""
 HI_WALKS = 8192
 """Walks per incidence of the value ``M_hi(v0)`` and slopes ``J_hi(v0)`` at the anchor (bounces as in the fit)."""
-ANCHORS = 2
-"""Linearisations made: at the fit, then at the optimum of the first (one Gauss-Newton step)."""
+ANCHORS = 3
+"""Linearisations made at most: at the fit, then after each Gauss-Newton step towards the last one's optimum
+(kept while the data fit better)."""
+TRUST = 4.0
+"""The longest Gauss-Newton step of the anchor, per parameter, in central-difference steps (two pilot sd)."""
+REGION = 16.0
+"""Half-width of the region the chain may explore around the anchor, per parameter, in central-difference
+steps (eight pilot sd, or the whole prior for a parameter the data hardly constrain)."""
 
 
 # --- a sampler for any batched log-density ---------------------------------------------
@@ -430,15 +440,14 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
     step = np.clip(0.5 * pilot_sd, 0.01 * first, np.minimum(10 * first, 0.25 * (high - low)))
 
     # The fit's own estimate is cheap and biased towards parameters where its
-    # Monte Carlo variance is small: one Gauss-Newton step on the high-budget
-    # linearisation moves the anchor to that linearisation's optimum, where it is made again.
-    anchor = v0
-    for rank in range(ANCHORS):
-        say(f"value and slopes at {'the fit' if rank == 0 else 'the refined anchor'} with {hi_walks} walks "
+    # Monte Carlo variance is small: Gauss-Newton steps on the high-budget
+    # linearisation move the anchor towards that linearisation's optimum.
+    def linearise(at, rank):
+        say(f"value and slopes at {'the fit' if rank == 0 else 'a refined anchor'} with {hi_walks} walks "
             "per incidence")
         # Two halves under independent keys: their mean is the estimate, their
         # difference measures the slopes' own noise, which J^T J would count as information.
-        halves = [_value_and_secants(dataclasses.replace(hi, key=k, walks=max(hi_walks // 2, 1)), anchor, step)
+        halves = [_value_and_secants(dataclasses.replace(hi, key=k, walks=max(hi_walks // 2, 1)), at, step)
                   for k in jax.random.split(jax.random.fold_in(keys[0], rank))]
         m_hi = 0.5 * (halves[0][0] + halves[1][0])
         jac_hi = 0.5 * (halves[0][1] + halves[1][1])
@@ -449,10 +458,30 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
         diff = ((halves[0][1] - halves[1][1]) / sigma[..., None]).reshape(-1, param.size)
         jac_noise = 0.25 * diff.T @ diff  # E[J^T J] - J_true^T J_true for the mean of the halves
         jac_v = (jac_hi / sigma[..., None]).reshape(-1, param.size)
-        if rank + 1 < ANCHORS:
-            resid = ((m_hi - meas.values) / sigma).reshape(-1)
-            anchor = np.clip(anchor - laplace(jac_v, jac_noise) @ jac_v.T @ resid, low, high)
+        resid = ((m_hi - meas.values) / sigma).reshape(-1)
+        return dict(at=at, m_hi=m_hi, jac_hi=jac_hi, rel_hi=rel_hi, sigma=sigma, jac_noise=jac_noise, jac_v=jac_v,
+                    resid=resid, chi2=float(resid @ resid))
+
+    lin = linearise(v0, 0)
+    chi2_at_fit = lin["chi2"]
+    for rank in range(1, ANCHORS):
+        # A Gauss-Newton step to the linearisation's optimum, kept where the
+        # linearisation holds (TRUST steps of the differences per parameter: an
+        # unidentified direction would otherwise send it across the prior) and
+        # off the bounds (the walkers' starting ball must be inside the prior).
+        move = -laplace(lin["jac_v"], lin["jac_noise"]) @ lin["jac_v"].T @ lin["resid"]
+        move = np.clip(move, -TRUST * step, TRUST * step)
+        margin = 1e-3 * (high - low)
+        trial = linearise(np.clip(lin["at"] + move, low + margin, high - margin), rank)
+        if trial["chi2"] >= lin["chi2"]:
+            break
+        lin = trial
+    anchor, m_hi, jac_hi, rel_hi, sigma, jac_noise, jac_v = (
+        lin[k] for k in ("at", "m_hi", "jac_hi", "rel_hi", "sigma", "jac_noise", "jac_v"))
     v0j = jnp.asarray(anchor, dtype)
+    # The linearisation holds near its anchor only: the chain stays within REGION
+    # difference steps of it, and the report says when the posterior reaches that edge.
+    box_low, box_high = np.maximum(low, anchor - REGION * step), np.minimum(high, anchor + REGION * step)
     if lo_walks:
         m_lo, jac_lo, _ = _value_and_secants(lo, anchor, step)
     else:
@@ -461,7 +490,8 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
                      sigma=jnp.asarray(sigma, dtype), anchor=jnp.asarray(m_hi - m_lo, dtype),
                      slope=jnp.asarray(jac_hi - jac_lo, dtype), jac_noise=jnp.asarray(jac_noise, dtype), v0=v0j,
                      key=keys[1],
-                     lobe_probs=jnp.asarray(probs, dtype), low=jnp.asarray(low, dtype), high=jnp.asarray(high, dtype),
+                     lobe_probs=jnp.asarray(probs, dtype), low=jnp.asarray(box_low, dtype),
+                     high=jnp.asarray(box_high, dtype),
                      scale=lo.scale, walks=lo_walks, bounces=lo_bounces)
 
     say("Laplace covariance and sensitivities from those slopes")
@@ -516,10 +546,12 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
         chain_in_tau=float(chain.steps / np.max(chain.tau)), converged=chain.converged,
         sampling_time_s=round(chain.seconds, 2), time_s=round(time.perf_counter() - t0, 2), seed=int(seed),
         prior={name: [float(a), float(b)] for name, a, b in zip(labels, low, high)},
+        linear_region={name: [float(a), float(b)] for name, a, b in zip(labels, box_low, box_high)},
         budget=dict(lo_walks=int(lo_walks), lo_bounces=int(lo_bounces), hi_walks=int(hi_walks), bounces=bounces),
         noise="file std columns" if noise_scale is None else "estimated from the fit's residuals",
         noise_scale=noise_scale,
         slope_steps={name: float(h) for name, h in zip(labels, step)},
+        chi2_high_budget_at_fit=chi2_at_fit, chi2_high_budget_at_anchor=lin["chi2"],
         mc_anchor_relative_error=rel_hi,
         mc_anchor_error_over_noise=float(np.median(rel_hi * m_hi / noise)),
         mc_model_error_over_noise=model_error,
@@ -564,11 +596,17 @@ def _laplace_notes(post):
     """One sentence per parameter where the Laplace spread and the chain's disagree, or the prior cuts the posterior."""
     notes = []
     prior = post.record["prior"]
+    region = post.record["linear_region"]
     for name, s in post.summary.items():
         half = 0.5 * (s["p84_noise_only"] - s["p16_noise_only"])
         low, high = prior[name]
         span = high - low
-        if s["p2.5"] <= low + 1e-3 * span or s["p97.5"] >= high - 1e-3 * span:
+        a, b = region[name]
+        if (a > low and s["p2.5"] <= a + 1e-3 * span) or (b < high and s["p97.5"] >= b - 1e-3 * span):
+            notes.append(f"`{name}`: the posterior reaches the edge of the region [{a:.4g}, {b:.4g}] where the "
+                         "model is linearised; the fit is far from the optimum of the high-budget model. Refit "
+                         "with a larger budget (`jaxcos fit --budget accurate`) and pass it with `--params`.")
+        elif s["p2.5"] <= low + 1e-3 * span or s["p97.5"] >= high - 1e-3 * span:
             notes.append(f"`{name}`: the posterior reaches the edge of its prior [{low:g}, {high:g}]; "
                          "the Gaussian approximation does not apply.")
         elif not np.isfinite(s["laplace_sd"]) or s["laplace_sd"] > 0.5 * span:
@@ -610,7 +648,7 @@ def uncertainty_report(post, meas):
                      f"{s['mc_sd']:.3g} | {s['laplace_sd']:.3g} | {s['tau']:.0f} | {s['ess']:.0f} |")
     notes = _laplace_notes(post)
     lines += ["", "## Laplace cross-check", "",
-              "The Laplace spread is `(J^T J - N)^-1` at the fit, with `J` the slopes of the high-budget estimate (central "
+              "The Laplace spread is `(J^T J - N)^-1` at the anchor, with `J` the slopes of the high-budget estimate (central "
               "differences over half a posterior width, under common random numbers; the forward-mode Jacobian of "
               "the fit is heavy-tailed in the direction parameters) and `N` their own noise. "
               + ("Where it disagrees with the chain:" if notes else "It agrees with the chain within a factor 1.5 "
@@ -630,9 +668,14 @@ def uncertainty_report(post, meas):
         f"| smallest effective sample size | {np.min(c.ess):.0f} |",
         f"| sampling time | {r['sampling_time_s']:.0f} s (total {r['time_s']:.0f} s) |",
         "", "## Monte Carlo error of the model", "",
-        f"The chain evaluates a Taylor control variate: value and slope at the fit from {r['budget']['hi_walks']} walks x "
-        f"{r['budget']['bounces']} bounces, curvature from {r['budget']['lo_walks']} walks x "
-        f"{r['budget']['lo_bounces']} bounces under one fixed key. "
+        (f"The chain evaluates the linearisation of one estimate at the anchor ({r['budget']['hi_walks']} walks x "
+         f"{r['budget']['bounces']} bounces; slopes by central differences), within the region given in "
+         "`posterior.json` (`linear_region`). " if not r["budget"]["lo_walks"] else
+         f"The chain evaluates a Taylor control variate: value and slopes at the anchor from "
+         f"{r['budget']['hi_walks']} walks x {r['budget']['bounces']} bounces, curvature from "
+         f"{r['budget']['lo_walks']} walks x {r['budget']['lo_bounces']} bounces under one fixed key. ")
+        + f"High-budget chi-square at the fit {r['chi2_high_budget_at_fit']:.1f}, at the anchor "
+        f"{r['chi2_high_budget_at_anchor']:.1f}. "
         f"Median error of the anchor relative to the measurement noise: {r['mc_anchor_error_over_noise']:.2f} (included "
         f"in the likelihood). RMS error of the sampled model at posterior draws, against independent estimates: "
         f"{r['mc_model_error_over_noise']:.2f} of the noise. Its effect on the parameters, the `MC sd` column, comes "

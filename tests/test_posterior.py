@@ -158,3 +158,21 @@ def test_cli_bad_inputs(tmp_path, capsys):
     assert "bad.csv" in err and len(err.splitlines()) == 1
     assert main(["uncertainty", "measurements/matte2.csv", "--out", str(tmp_path / "o"), "--walkers", "2"]) == 2
     assert not (tmp_path / "o").exists()
+
+
+def test_report_says_when_the_chain_reaches_the_edge_of_the_linearisation():
+    """A posterior cut by the linearisation's region is told apart from one cut by the prior."""
+    from types import SimpleNamespace
+
+    from jaxcos._posterior import _laplace_notes
+
+    row = dict(p16_noise_only=0.2, p84_noise_only=0.3, laplace_sd=0.05)
+    summary = {"inside": dict(row, **{"p2.5": 0.15, "p97.5": 0.35}),
+               "at_region": dict(row, **{"p2.5": 0.15, "p97.5": 0.4}),
+               "at_prior": dict(row, **{"p2.5": 0.0, "p97.5": 0.35})}
+    record = dict(prior={n: [0.0, 1.0] for n in summary},
+                  linear_region={"inside": [0.0, 0.6], "at_region": [0.0, 0.4], "at_prior": [0.0, 0.6]})
+    notes = _laplace_notes(SimpleNamespace(summary=summary, record=record))
+    assert len(notes) == 2
+    assert notes[0].startswith("`at_region`") and "linearised" in notes[0]
+    assert notes[1].startswith("`at_prior`") and "prior" in notes[1]
