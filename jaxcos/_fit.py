@@ -330,8 +330,8 @@ def highlight_tilt(meas):
 
     Mirror-like platelets tilted by ``theta_p`` in the plane of incidence
     reflect at ``theta_o = theta_i + 2 theta_p`` (MODEL.md section 2). For each
-    incidence with at least five in-plane points, the brightest point relative
-    to that incidence's median gives one estimate; the result is their median.
+    incidence with at least five in-plane points, its brightest point (mean of
+    r, g, b) gives one estimate; the result is their median.
     A narrow highlight (``alpha_p`` of a few thousandths) is invisible to a
     random start: its basin is a fraction of a degree wide in ``theta_p``.
     """
@@ -343,8 +343,7 @@ def highlight_tilt(meas):
         if sel.sum() < 5:
             continue
         to = np.where(np.isclose(meas.phi_o[sel] % 360.0, 180.0), -meas.theta_o[sel], meas.theta_o[sel])
-        brightest = np.argmax(values[sel] / max(np.median(values[sel]), 1e-12))
-        tilts.append(0.5 * (to[brightest] - ti))
+        tilts.append(0.5 * (to[np.argmax(values[sel])] - ti))
     if not tilts:
         return None
     return float(np.clip(np.median(tilts), 0.0, 89.0))
