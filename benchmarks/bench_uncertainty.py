@@ -72,7 +72,8 @@ def coverage(replicates, hi_walks, lo_walks):
     n = replicates * len(rows[0]["in68"])
     z = np.array([row["z"] for row in rows])
     return dict(machine=_machine(), replicates=replicates, truth_walks=TRUTH_WALKS, hi_walks=hi_walks,
-                mean_z=z.mean(axis=0).tolist(), rms_z=np.sqrt((z ** 2).mean(axis=0)).tolist(), lo=(lo_walks, 48), pairs=n, coverage=frac,
+                mean_z=z.mean(axis=0).tolist(), rms_z=np.sqrt((z ** 2).mean(axis=0)).tolist(), lo=(lo_walks, 48),
+                pairs=n, coverage=frac,
                 binomial_se_68=float(np.sqrt(0.68 * 0.32 / n)), labels=list(post.labels), rows=rows,
                 time_s=time.perf_counter() - t0)
 
