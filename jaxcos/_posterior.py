@@ -521,7 +521,8 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
     q_noise = np.percentile(chain.samples, [16, 84], axis=0)
     summary = {}
     for i, name in enumerate(labels):
-        summary[name] = dict(fit=float(v0[i]), anchor=float(anchor[i]), median=float(q[2, i]), p16=float(q[1, i]), p84=float(q[3, i]),
+        summary[name] = dict(fit=float(v0[i]), anchor=float(anchor[i]), median=float(q[2, i]),
+                             p16=float(q[1, i]), p84=float(q[3, i]),
                              **{"p2.5": float(q[0, i]), "p97.5": float(q[4, i])},
                              p16_noise_only=float(q_noise[0, i]), p84_noise_only=float(q_noise[1, i]),
                              mc_sd=float(np.sqrt(mc_cov[i, i])), laplace_sd=float(laplace_sd[i]),
@@ -648,7 +649,8 @@ def uncertainty_report(post, meas):
                      f"{s['mc_sd']:.3g} | {s['laplace_sd']:.3g} | {s['tau']:.0f} | {s['ess']:.0f} |")
     notes = _laplace_notes(post)
     lines += ["", "## Laplace cross-check", "",
-              "The Laplace spread is `(J^T J - N)^-1` at the anchor, with `J` the slopes of the high-budget estimate (central "
+              "The Laplace spread is `(J^T J - N)^-1` at the anchor, with `J` the slopes of the high-budget "
+              "estimate (central "
               "differences over half a posterior width, under common random numbers; the forward-mode Jacobian of "
               "the fit is heavy-tailed in the direction parameters) and `N` their own noise. "
               + ("Where it disagrees with the chain:" if notes else "It agrees with the chain within a factor 1.5 "
