@@ -17,7 +17,6 @@ import sys
 import time
 
 import jax
-import numpy as np
 
 import jaxcos
 from jaxcos._fit import solve_lm, solve_powell, with_mc_error

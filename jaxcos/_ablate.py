@@ -64,14 +64,11 @@ import io
 import json
 import math
 import os
-import shutil
-import sys
-import tempfile
 import time
 
 import numpy as np
 
-from ._errors import InputError, refuse_overwrite
+from ._errors import InputError, refuse_overwrite, staged_outputs
 from ._fit import FIT_BOUNCES, fit, parameterization
 from ._kubelka_munk import (  # noqa: F401  (re-exported by jaxcos)
     KM_N_PARAMS,
@@ -565,27 +562,15 @@ def write_ablation(result, out_dir, *, force=False):
     end, so a failure leaves nothing half-written. Existing files are kept
     unless ``force``.
     """
-    out_dir = os.fspath(out_dir)
-    targets = [os.path.join(out_dir, name) for name in ABLATION_FILES]
-    refuse_overwrite(targets, force)
-    created = not os.path.isdir(out_dir)
-    os.makedirs(out_dir, exist_ok=True)
-    try:
-        with tempfile.TemporaryDirectory(dir=out_dir, prefix=".jaxcos-") as tmp:
-            with open(os.path.join(tmp, "ablation.csv"), "w", encoding="utf-8") as fh:
-                fh.write(_csv_text(result.rows))
-            with open(os.path.join(tmp, "report.md"), "w", encoding="utf-8") as fh:
-                fh.write(ablation_report(result))
-            ablation_figure(result, os.path.join(tmp, "ablation.png"))
-            with open(os.path.join(tmp, "fits.json"), "w", encoding="utf-8") as fh:
-                fh.write(_fits_json(result))
-            for name, path in zip(ABLATION_FILES, targets):
-                shutil.move(os.path.join(tmp, name), path)
-    except BaseException:
-        if created and not os.listdir(out_dir):
-            os.rmdir(out_dir)
-        raise
-    return targets
+    with staged_outputs(out_dir, ABLATION_FILES, force) as tmp:
+        with open(os.path.join(tmp, "ablation.csv"), "w", encoding="utf-8") as fh:
+            fh.write(_csv_text(result.rows))
+        with open(os.path.join(tmp, "report.md"), "w", encoding="utf-8") as fh:
+            fh.write(ablation_report(result))
+        ablation_figure(result, os.path.join(tmp, "ablation.png"))
+        with open(os.path.join(tmp, "fits.json"), "w", encoding="utf-8") as fh:
+            fh.write(_fits_json(result))
+    return [os.path.join(os.fspath(out_dir), name) for name in ABLATION_FILES]
 
 
 # --- the command ---------------------------------------------------------------------------

@@ -38,14 +38,12 @@ import dataclasses
 import json
 import os
 import platform
-import shutil
 import sys
-import tempfile
 import time
 
 import numpy as np
 
-from ._errors import InputError, refuse_overwrite
+from ._errors import InputError, refuse_overwrite, staged_outputs
 from ._fit import FIT_BOUNCES, FIT_WALKS
 
 FILES = ("accuracy.json", "accuracy.md", "accuracy.png", "accuracy_fit.png")
@@ -591,31 +589,23 @@ def accuracy_benchmark(out_dir, *, quick=False, force=False, progress=None):
 
 def write_outputs(data, out_dir, *, force=False):
     """Write :data:`FILES` for the ``data`` of :func:`accuracy_benchmark` (also to redraw them from a JSON)."""
-    targets = [os.path.join(out_dir, name) for name in FILES]
-    refuse_overwrite(targets, force)
-    os.makedirs(out_dir, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=out_dir, prefix=".jaxcos-") as tmp:
+    with staged_outputs(out_dir, FILES, force) as tmp:
         with open(os.path.join(tmp, FILES[0]), "w", encoding="utf-8") as fh:
             json.dump(data, fh, indent=1)
         with open(os.path.join(tmp, FILES[1]), "w", encoding="utf-8") as fh:
             fh.write(accuracy_table(data))
         accuracy_figure(data, os.path.join(tmp, FILES[2]))
         fit_figure(data, os.path.join(tmp, FILES[3]))
-        for name, path in zip(FILES, targets):
-            shutil.move(os.path.join(tmp, name), path)
-    return targets
+    return [os.path.join(out_dir, name) for name in FILES]
 
 
 # --- the command ------------------------------------------------------------------------------
 
 
 def _cmd_accuracy(args):
-    start = time.perf_counter()
+    from ._cli import progress
 
-    def say(message):
-        print(f"jaxcos bench accuracy [{time.perf_counter() - start:6.1f} s]: {message}", file=sys.stderr, flush=True)
-
-    accuracy_benchmark(args.out, quick=args.quick, force=args.force, progress=say)
+    accuracy_benchmark(args.out, quick=args.quick, force=args.force, progress=progress("bench accuracy"))
 
 
 def add_command(sub):

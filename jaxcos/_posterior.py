@@ -55,8 +55,7 @@ Example::
 import dataclasses
 import json
 import os
-import shutil
-import tempfile
+import sys
 import time
 
 import emcee
@@ -65,8 +64,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._errors import InputError, refuse_overwrite
-from ._fit import FIT_BOUNCES, FIT_WALKS, fit, make_problem, parameterization
+from ._errors import InputError, refuse_overwrite, staged_outputs
+from ._fit import FIT_BOUNCES, fit, make_problem
 from ._walk import lobe_probabilities, simulate
 
 UNCERTAINTY_FILES = ("posterior.json", "report.md", "corner.png", "predictive.png", "sensitivity.png")
@@ -762,9 +761,6 @@ def write_uncertainty(post, meas, out_dir, *, force=False):
     Written into a temporary folder first and moved in at the end; existing
     files are kept unless ``force``.
     """
-    targets = [os.path.join(out_dir, name) for name in UNCERTAINTY_FILES]
-    refuse_overwrite(targets, force)
-    os.makedirs(out_dir, exist_ok=True)
     c = post.chain
     data = dict(
         parameters=post.summary,
@@ -777,7 +773,7 @@ def write_uncertainty(post, meas, out_dir, *, force=False):
         record=post.record,
         fit=post.fit.record,
     )
-    with tempfile.TemporaryDirectory(dir=out_dir, prefix=".jaxcos-") as tmp:
+    with staged_outputs(out_dir, UNCERTAINTY_FILES, force) as tmp:
         with open(os.path.join(tmp, "posterior.json"), "w", encoding="utf-8") as fh:
             json.dump(_json_safe(data), fh, indent=1)
         with open(os.path.join(tmp, "report.md"), "w", encoding="utf-8") as fh:
@@ -785,9 +781,7 @@ def write_uncertainty(post, meas, out_dir, *, force=False):
         _corner(post, os.path.join(tmp, "corner.png"))
         _predictive(post, meas, os.path.join(tmp, "predictive.png"))
         _sensitivity_maps(post, meas, os.path.join(tmp, "sensitivity.png"))
-        for name, path in zip(UNCERTAINTY_FILES, targets):
-            shutil.move(os.path.join(tmp, name), path)
-    return targets
+    return [os.path.join(out_dir, name) for name in UNCERTAINTY_FILES]
 
 
 # --- the command ----------------------------------------------------------------------
@@ -817,7 +811,7 @@ def _cmd(args):
           f"{post.summary[worst]['ess']:.0f} ({worst}). Wrote {', '.join(paths)}.")
     if not post.converged:
         print(f"jaxcos uncertainty: the chain is shorter than {CHAIN_TAUS} autocorrelation times; its spreads are "
-              "not reliable (run longer with --steps).", file=__import__("sys").stderr)
+              "not reliable (run longer with --steps).", file=sys.stderr)
         return 3
     return 0
 

@@ -8,13 +8,11 @@ Example::
 """
 
 import os
-import shutil
-import tempfile
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from ._errors import refuse_overwrite
+from ._errors import staged_outputs
 from ._material import material_to_dict, save_params
 from ._plot import default_exposure, draw_reflectance
 
@@ -122,14 +120,9 @@ def write_fit(result, meas, out_dir, *, force=False):
     end, so a failure leaves nothing half-written. Existing files are kept
     unless ``force``.
     """
-    targets = [os.path.join(out_dir, name) for name in FIT_FILES]
-    refuse_overwrite(targets, force)
-    os.makedirs(out_dir, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=out_dir, prefix=".jaxcos-") as tmp:
+    with staged_outputs(out_dir, FIT_FILES, force) as tmp:
         save_params(result.material, os.path.join(tmp, "params.json"), extra={"fit": result.record})
         with open(os.path.join(tmp, "report.md"), "w", encoding="utf-8") as fh:
             fh.write(fit_report(result, meas))
         fit_figure(meas, result.model, os.path.join(tmp, "fit.png"))
-        for name, path in zip(FIT_FILES, targets):
-            shutil.move(os.path.join(tmp, name), path)
-    return targets
+    return [os.path.join(out_dir, name) for name in FIT_FILES]
