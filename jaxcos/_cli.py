@@ -122,22 +122,26 @@ def _cmd_fit(args):
     check_variant(args.variant)
     walks, bounces = resolve_budget(args.budget, walks=args.walks, bounces=args.bounces,
                                     default=(FIT_WALKS, FIT_BOUNCES))
+    if args.jacobian_walks < 1:
+        raise InputError(f"--jacobian-walks must be a positive integer, not {args.jacobian_walks}.")
     refuse_overwrite([os.path.join(args.out, name) for name in FIT_FILES], args.force)
     meas = load_measurements(args.measurements)
     start = load_params(args.start) if args.start else None
-    result = fit(meas, variant=args.variant, method=args.method, seed=args.seed, walks=walks,
-                 bounces=bounces, starts=args.starts, fit_t=args.fit_t, fit_phi=args.fit_phi, start=start,
-                 t=args.t, progress=progress("fit"))
+    result = fit(meas, variant=args.variant, method=args.method, seed=args.seed, walks=walks, bounces=bounces,
+                 jacobian_walks=args.jacobian_walks, starts=args.starts, fit_t=args.fit_t, fit_phi=args.fit_phi,
+                 start=start, t=args.t, progress=progress("fit"))
     write_fit(result, meas, args.out, force=args.force)
     r = result.record
     chi2 = f", reduced chi-square {r['reduced_chi2']:.2f}" if "reduced_chi2" in r else ""
+    if "reduced_chi2" in r["check"]:
+        chi2 += f" ({r['check']['reduced_chi2']:.2f} under an independent key)"
     print(f"fitted {r['variant']} to {r['n_points']} points in {r['time_s']:.1f} s: L2 {r['l2']:.4g}, "
           f"RMSE {r['rmse']:.4g}{chi2}; {r['starts_at_optimum']} of {r['starts_refined']} refined starts agree. "
           f"Wrote {', '.join(os.path.join(args.out, n) for n in FIT_FILES)}.")
 
 
 def _add_fit(sub):
-    from ._fit import FIT_BOUNCES, FIT_WALKS
+    from ._fit import FIT_BOUNCES, FIT_JACOBIAN_WALKS, FIT_WALKS
 
     p = sub.add_parser("fit", help="fit a layered material to a measurement CSV",
                        description="Fit a one-layer cosmetic material to MEASUREMENTS.csv by Levenberg-Marquardt "
@@ -150,7 +154,9 @@ def _add_fit(sub):
     p.add_argument("--seed", type=int, default=0, help="seeds the Monte Carlo key and the random starts")
     p.add_argument("--walks", type=int, default=None, help=f"walks per incidence direction (default {FIT_WALKS})")
     p.add_argument("--bounces", type=int, default=None, help=f"bounces per walk (default {FIT_BOUNCES})")
-    _add_budget(p, "standard")
+    p.add_argument("--jacobian-walks", type=int, default=FIT_JACOBIAN_WALKS, metavar="N",
+                   help=f"walks of the Jacobian, the first of the objective's walks (default {FIT_JACOBIAN_WALKS})")
+    _add_budget(p, "accurate")
     p.add_argument("--starts", type=int, default=15, help="random starts screened besides the default one (default 15)")
     p.add_argument("--start", metavar="PARAMS", help="start from this params.json instead of the multi-start")
     p.add_argument("--t", type=float, default=16.0, help="optical thickness when it is not fitted (default 16)")

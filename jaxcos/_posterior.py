@@ -605,7 +605,7 @@ def _laplace_notes(post):
         if (a > low and s["p2.5"] <= a + 1e-3 * span) or (b < high and s["p97.5"] >= b - 1e-3 * span):
             notes.append(f"`{name}`: the posterior reaches the edge of the region [{a:.4g}, {b:.4g}] where the "
                          "model is linearised; the fit is far from the optimum of the high-budget model. Refit "
-                         "with a larger budget (`jaxcos fit --budget accurate`) and pass it with `--params`.")
+                         "with more walks (`jaxcos fit --walks 4096`) and pass it with `--params`.")
         elif s["p2.5"] <= low + 1e-3 * span or s["p97.5"] >= high - 1e-3 * span:
             notes.append(f"`{name}`: the posterior reaches the edge of its prior [{low:g}, {high:g}]; "
                          "the Gaussian approximation does not apply.")

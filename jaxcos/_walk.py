@@ -55,12 +55,13 @@ BUDGETS = {
     "paper": (DEFAULT_WALKS, DEFAULT_BOUNCES),
 }
 """Named Monte Carlo budgets ``(walks per incidence, bounces per walk)`` for ``--budget NAME``
-of ``jaxcos fit`` and ``jaxcos eval``; ``standard`` is the fit's default, ``paper`` the
-estimator's. Measured by ``jaxcos bench accuracy`` (``benchmarks/results/accuracy.md``):
+of ``jaxcos fit`` and ``jaxcos eval``; ``accurate`` is the fit's default (its objective;
+the fit's Jacobian uses the first 128 of those walks), ``paper`` the estimator's. Measured by ``jaxcos bench accuracy`` (``benchmarks/results/accuracy.md``):
 the error falls as 1/sqrt(walks) at a cost linear in walks, and 128 bounces leave a
 truncation bias under 0.1% (dewy1; 64 bounces: 1%), so bounces beyond 128 buy
 nothing. ``fast`` is for exploring (Monte Carlo error about twice the 2% noise of the
-bundled sets); ``accurate`` costs about 4x ``standard`` for half its Monte Carlo error."""
+bundled sets); ``accurate`` costs about 4x ``standard`` in a forward evaluation for half
+its Monte Carlo error."""
 
 
 def resolve_budget(name=None, *, walks=None, bounces=None, default=(DEFAULT_WALKS, DEFAULT_BOUNCES)):
@@ -289,7 +290,9 @@ def _uniforms(seed, step, walks, n, dtype):
     gives the same numbers. jax.random's generators cost about 25 ns per
     number on this project's 2-core CPU, a quarter of a whole walk; hashing the
     counter ``(walk, stream, step)`` fuses into the step and costs ~1 ns.
-    24 random bits per number.
+    24 random bits per number. A walk's numbers do not depend on ``walks``:
+    the first ``w`` walks of a larger batch are the batch of ``w`` walks (the
+    fit takes its Jacobian from them).
     """
     counter = jnp.arange(walks, dtype=jnp.uint32)[:, None] * jnp.uint32(n) + jnp.arange(n, dtype=jnp.uint32)
     x = _mix(_mix(counter ^ seed[0]) + _mix(step.astype(jnp.uint32) ^ seed[1]))

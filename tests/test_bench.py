@@ -41,7 +41,7 @@ def test_bench_accuracy_quick_writes_its_files(tmp_path, capsys):
 
 
 def test_budget_presets_resolve():
-    assert BUDGETS["standard"] == (FIT_WALKS, FIT_BOUNCES)
+    assert BUDGETS["accurate"] == (FIT_WALKS, FIT_BOUNCES)
     assert BUDGETS["paper"] == (DEFAULT_WALKS, DEFAULT_BOUNCES)
     for name, budget in BUDGETS.items():
         assert resolve_budget(name) == budget

@@ -1,5 +1,7 @@
 """The fit: recovery of known parameters, stability at the truth, clear errors."""
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,7 +12,7 @@ import jaxcos
 from jaxcos._cli import main
 import optimistix as optx
 
-from jaxcos._fit import LevenbergMarquardt, fit, highlight_tilt, make_problem, parameterization
+from jaxcos._fit import LevenbergMarquardt, check, fit, highlight_tilt, make_problem, parameterization
 from jaxcos._measurements import Measurements
 
 # The data are made by the fit's own estimator (same key, budget and lobe
@@ -57,6 +59,12 @@ def _delta_chi2(result):
 # not used: under a fixed key the objective is rough on small scales in g1 and
 # alpha_p, so the local slope overstates how well the data pin them.)
 CHI2_BOUND = float(chi2.ppf(1 - 1e-4, 10))
+# The data are simulated with the lobe probabilities of the first pass; the
+# fit's second pass takes new ones (jaxcos._fit.PASSES), so its objective is a
+# slightly different estimator and need not score the truth exactly. It must
+# still end within one chi-square unit of the truth (the smallest difference
+# the data tell apart for one parameter): a worse basin is tens of units away.
+SLACK = 1.0
 
 
 @pytest.mark.slow
@@ -65,7 +73,7 @@ def test_fit_recovers_known_parameters():
     data = _synthetic(TRUTH, START)
     result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, seed=SEED, start=START)
     delta = _delta_chi2(result)
-    assert -1e-3 * result.record["loss"] <= delta < CHI2_BOUND, delta
+    assert -SLACK <= delta < CHI2_BOUND, delta
     dof = data.values.size - result.param.size
     # The data carry noise but no Monte Carlo error against this model (same key): judge by the noise alone.
     assert chi2.ppf(1e-4, dof) / dof < result.record["reduced_chi2_noise_only"] < chi2.ppf(1 - 1e-4, dof) / dof
@@ -77,7 +85,58 @@ def test_fit_started_at_truth_stays():
     data = _synthetic(TRUTH, TRUTH, seed=8)
     result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, seed=SEED, start=TRUTH)
     delta = _delta_chi2(result)
-    assert -1e-6 * result.record["loss"] <= delta < CHI2_BOUND, delta
+    assert -SLACK <= delta < CHI2_BOUND, delta
+
+
+def test_jacobian_comes_from_the_first_walks():
+    """With ``jacobian_walks``, the residuals are those of all the walks and the Jacobian that of the first ones."""
+    data = _synthetic(TRUTH, START)
+    param = parameterization("single_lobe", template=START)
+    x = param.from_material(START)
+    make = lambda **kw: make_problem(data, param, key=jax.random.key(SEED), bounces=16, reference=START, **kw)
+    full, few, mixed = make(walks=32), make(walks=8), make(walks=32, jacobian_walks=8)
+    np.testing.assert_array_equal(np.asarray(mixed.residuals(x)), np.asarray(full.residuals(x)))
+    jac = lambda p: np.asarray(jax.jacfwd(p.residuals)(x))
+    np.testing.assert_allclose(jac(mixed), jac(few), rtol=1e-6, atol=1e-12)
+    assert not np.allclose(jac(full), jac(few))
+
+
+CHECK_KEYS, CHECK_WALKS, REF_WALKS = 32, 32, 2 ** 14
+
+
+def test_check_subtracts_its_own_monte_carlo_error():
+    """``check``: ``chi2 - chi2_mc`` is unbiased for the chi-square of the exact model; ``chi2`` alone is not.
+
+    The data are a 2^14-walk estimate of the truth plus noise, so the exact
+    model's chi-square is the noise's, up to the reference's own Monte Carlo
+    error (its variance is CHECK_WALKS / REF_WALKS of a check's, in the
+    tolerance). The mean over 32 independent checks at 32 walks must agree
+    with it within 3 standard errors of that mean; the uncorrected chi-square
+    must not (it carries the checks' variance, the bias the correction removes).
+    """
+    ti = np.repeat([0.0, 20.0, 40.0, 60.0], 13)
+    to = np.tile([-70.0, -50.0, -30.0, -10.0, 5.0, 15.0, 25.0, 35.0, 45.0, 55.0, 65.0, 75.0, 85.0], 4)
+    ref = jaxcos.simulate(TRUTH, jaxcos.make_query(ti, to), jax.random.key(11), walks=REF_WALKS, bounces=BOUNCES)
+    f = np.pi * np.asarray(ref.f, float)
+    std = np.sqrt((0.05 * f) ** 2 + 0.005 ** 2)
+    values = f + std * np.random.default_rng(9).standard_normal(f.shape)
+    meas = Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros_like(ti), values=values, std=std,
+                        quantity="reflectance_factor", metadata={}, path="synthetic.csv")
+    target = float(np.sum(((f - values) / std) ** 2))
+    param = parameterization("single_lobe", template=TRUTH)
+    problem = make_problem(meas, param, key=jax.random.key(0), walks=CHECK_WALKS, bounces=BOUNCES, reference=TRUTH)
+    x = param.from_material(TRUTH)
+    checks = [check(problem, meas, x, key=jax.random.key(100 + k), walks=CHECK_WALKS) for k in range(CHECK_KEYS)]
+    raw = np.array([c["chi2"] for c in checks])
+    corrected = raw - np.array([c["chi2_mc"] for c in checks])
+    ref_var = np.mean([c["chi2_mc"] for c in checks]) * CHECK_WALKS / REF_WALKS
+    se = np.std(corrected, ddof=1) / np.sqrt(CHECK_KEYS)
+    tol = 3 * np.sqrt(se ** 2 + 4 * ref_var) + ref_var
+    print(f"\n[check] target {target:.1f}, corrected {corrected.mean():.1f} +- {se:.1f}, raw {raw.mean():.1f}")
+    assert abs(corrected.mean() - target) < tol
+    assert raw.mean() - target > 3 * np.std(raw, ddof=1) / np.sqrt(CHECK_KEYS)
+    dof = values.size - param.size
+    np.testing.assert_allclose(checks[0]["reduced_chi2"], corrected[0] / dof)
 
 
 def _rosenbrock(x, args):
@@ -160,6 +219,48 @@ def _tiny():
     values = np.full((3, 3), 0.2)
     return Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros(3), values=values, std=np.full((3, 3), 0.01),
                         quantity="reflectance_factor", metadata={}, path="tiny.csv")
+
+
+@pytest.mark.slow
+def test_cli_fit_reports_its_check(tmp_path, capsys):
+    """``jaxcos fit`` records the Jacobian's walks and the independent check, and the report explains the check."""
+    from jaxcos._measurements import save_measurements
+
+    csv = tmp_path / "m.csv"
+    save_measurements(_synthetic(TRUTH, START), csv)
+    out = tmp_path / "fit"
+    assert main(["fit", str(csv), "--out", str(out), "--variant", "single_lobe", "--walks", "16", "--bounces", "16",
+                 "--jacobian-walks", "8", "--starts", "2"]) == 0
+    record = json.loads((out / "params.json").read_text())["fit"]
+    assert record["walks"] == 16 and record["jacobian_walks"] == 8
+    assert record["check"]["walks"] == 64 and record["check"]["chi2"] > record["check"]["chi2_mc"] > 0
+    report = (out / "report.md").read_text()
+    assert "## Check under an independent key" in report and f"{record['check']['reduced_chi2']:.3f}" in report
+    assert "under an independent key" in capsys.readouterr().out
+    assert main(["fit", str(csv), "--out", str(tmp_path / "g"), "--jacobian-walks", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--jacobian-walks" in err and len(err.splitlines()) == 1
+
+
+def test_each_pass_takes_its_lobe_probabilities_where_it_starts(monkeypatch):
+    """A refined start gets ``PASSES`` passes; each holds the lobe probabilities of its own starting point."""
+    import jaxcos._fit as fitting
+    from jaxcos._walk import lobe_probabilities
+
+    calls, real = [], fitting.solve_lm
+
+    def spy(problem, x0, **kw):
+        out = real(problem, x0, **kw)
+        calls.append((problem, x0, out[0]))
+        return out
+
+    monkeypatch.setattr(fitting, "solve_lm", spy)
+    result = fit(_synthetic(TRUTH, START), variant="single_lobe", walks=16, bounces=16, jacobian_walks=8, starts=2)
+    assert fitting.PASSES == 2 and len(calls) == 2 * result.record["starts_refined"] == 4
+    for first, second in (calls[0:2], calls[2:4]):
+        np.testing.assert_array_equal(second[1], first[2])
+        np.testing.assert_allclose(second[0].lobe_probs, lobe_probabilities(result.param.to_material(first[2])))
+        assert not np.allclose(first[0].lobe_probs, second[0].lobe_probs)
 
 
 def test_unknown_variant_is_a_clear_error(tmp_path, capsys):
