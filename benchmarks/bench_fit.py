@@ -1,13 +1,18 @@
 """Levenberg-Marquardt against the Powell baseline, on the same objective, per bundled data set.
 
-Both methods refine the same start (the best screened start of the default
-multi-start, so the comparison is of the local solvers) on the same residuals:
-the same key, budget, lobe probabilities and weights. Recorded: wall time,
-forward evaluations (a Jacobian counts as its measured cost in forward
-evaluations), final loss, and the time LM needs to reach Powell's final loss
-(from a second, compiled run whose accepted losses a host callback times).
+Both methods refine the same start (the fit's default start, no screening, so
+the comparison is of the local solvers) on the same residuals: the same key,
+budget, lobe probabilities and weights (those of the full fit's best start).
+Recorded: wall time, forward evaluations (a Jacobian counts as its measured
+cost in forward evaluations at the objective's walks), final loss, the time LM
+needs to reach Powell's final loss (from a second, compiled run whose accepted
+losses a host callback times), the time each needs to reach the worse of the
+two final losses (Powell's evaluations timed from the end of the first, which
+compiles the objective), and both solutions' chi-square under an
+independent key (``jaxcos._fit.check``), which neither solver could tune.
 
     python benchmarks/bench_fit.py dewy1 matte2     # appends to benchmarks/results/fit.json
+    python benchmarks/bench_fit.py --powell 1000 dewy1   # Powell's evaluation cap (default 4000)
 """
 
 import json
@@ -19,7 +24,7 @@ import time
 import jax
 
 import jaxcos
-from jaxcos._fit import solve_lm, solve_powell, with_mc_error
+from jaxcos._fit import CHECK_FACTOR, check, solve_lm, solve_powell, with_mc_error
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -73,26 +78,42 @@ def bench(product, max_powell=4000):
     jac_fn = jax.jit(jax.jacfwd(lambda x: problem.residuals(x)))
     jac_fn(x0).block_until_ready()
     jac = min(_time(lambda: jac_fn(x0).block_until_ready())[1] for _ in range(3))
-    (x_pw, loss_pw, nfev), t_pw = _time(lambda: solve_powell(problem, x0, max_evaluations=max_powell))
+    powell_trace, t1 = [], [None]
+
+    def on_evaluation(loss):
+        # Times from the end of the first evaluation, which compiles the objective.
+        if t1[0] is None:
+            t1[0] = time.perf_counter()
+        powell_trace.append((time.perf_counter() - t1[0], loss))
+
+    (x_pw, loss_pw, nfev), t_pw = _time(lambda: solve_powell(problem, x0, max_evaluations=max_powell,
+                                                            on_evaluation=on_evaluation))
     # LM's time to Powell's final loss: the first accepted point at or below it.
     reach = [t for t, loss in trace if loss <= loss_pw]
     t_reach = reach[0] if reach else None
+    # The same loss for both: the worse of the two final losses, and each solver's first time at or below it.
+    same = max(loss_lm, loss_pw)
+    t_lm_same = next((t for t, loss in trace if loss <= same * (1 + 1e-6)), t_lm)
+    t_pw_same = next(t for t, loss in powell_trace if loss <= same * (1 + 1e-6))
+    checked = {name: check(problem, meas, x, key=jax.random.key(12345), walks=CHECK_FACTOR * problem.walks)
+               for name, x in (("lm", x_lm), ("powell", x_pw))}
     return dict(product=product, n_params=int(problem.param.size), n_points=int(meas.n_points),
-                full_fit=dict(time_s=t_full, record=full.record),
+                full_fit=dict(time_s=t_full, record=full.record), check=checked,
                 forward_s=fwd, jacobian_s=jac, jacobian_in_forwards=jac / fwd,
                 lm=dict(time_s=t_lm, loss=loss_lm, steps=steps, forward_evaluations=(steps + 1) * jac / fwd),
                 powell=dict(time_s=t_pw, loss=loss_pw, forward_evaluations=nfev, max_evaluations=max_powell),
                 speedup=t_pw / t_lm, lm_loss_not_worse=loss_lm <= loss_pw * (1 + 1e-3),
                 lm_time_to_powell_loss_s=t_reach,
-                speedup_to_same_loss=None if t_reach is None else t_pw / t_reach, lm_trace=trace)
+                speedup_to_same_loss=None if t_reach is None else t_pw / t_reach, lm_trace=trace,
+                same_loss=dict(loss=same, lm_s=t_lm_same, powell_s=t_pw_same, speedup=t_pw_same / t_lm_same))
 
 
-def main(products):
+def main(products, max_powell=4000):
     path = os.path.join(HERE, "results", "fit.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
     data = json.load(open(path)) if os.path.exists(path) else {"runs": []}
     for product in products:
-        r = bench(product)
+        r = bench(product, max_powell=max_powell)
         r["machine"] = dict(platform=platform.platform(), cpus=os.cpu_count(), jax=jax.__version__,
                             load_average=os.getloadavg())
         data["runs"].append(r)
@@ -100,10 +121,16 @@ def main(products):
               f"loss {r['lm']['loss']:.1f} ({r['lm']['forward_evaluations']:.0f} forward evals), "
               f"Powell {r['powell']['time_s']:.1f} s loss {r['powell']['loss']:.1f} "
               f"({r['powell']['forward_evaluations']} evals); speed-up {r['speedup']:.1f}; LM reaches Powell's loss in "
-              f"{r['lm_time_to_powell_loss_s']} s", flush=True)
+              f"{r['lm_time_to_powell_loss_s']} s; both reach {r['same_loss']['loss']:.1f} in LM "
+              f"{r['same_loss']['lm_s']:.1f} s, Powell {r['same_loss']['powell_s']:.1f} s; reduced chi-square under an independent key: LM "
+              f"{r['check']['lm'].get('reduced_chi2')}, Powell {r['check']['powell'].get('reduced_chi2')}", flush=True)
         with open(path, "w") as fh:
             json.dump(data, fh, indent=2)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:] or list(jaxcos.PRODUCTS))
+    args = sys.argv[1:]
+    cap = 4000
+    if args[:1] == ["--powell"]:
+        cap, args = int(args[1]), args[2:]
+    main(args or list(jaxcos.PRODUCTS), max_powell=cap)
