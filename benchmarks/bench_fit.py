@@ -122,7 +122,8 @@ def main(products, max_powell=4000):
               f"Powell {r['powell']['time_s']:.1f} s loss {r['powell']['loss']:.1f} "
               f"({r['powell']['forward_evaluations']} evals); speed-up {r['speedup']:.1f}; LM reaches Powell's loss in "
               f"{r['lm_time_to_powell_loss_s']} s; both reach {r['same_loss']['loss']:.1f} in LM "
-              f"{r['same_loss']['lm_s']:.1f} s, Powell {r['same_loss']['powell_s']:.1f} s; reduced chi-square under an independent key: LM "
+              f"{r['same_loss']['lm_s']:.1f} s, Powell {r['same_loss']['powell_s']:.1f} s; "
+              "reduced chi-square under an independent key: LM "
               f"{r['check']['lm'].get('reduced_chi2')}, Powell {r['check']['powell'].get('reduced_chi2')}", flush=True)
         with open(path, "w") as fh:
             json.dump(data, fh, indent=2)

@@ -601,9 +601,9 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     elapsed = time.perf_counter() - t0
     record = _statistics(meas, model, loss, param.size)
     record.update(
-        iterations=int(steps), time_s=round(elapsed, 2), method=method, variant=variant, n_evaluations=int(round(n_eval)),
-        walks=int(walks), bounces=int(bounces), jacobian_walks=jacobian_walks, seed=int(seed),
-        n_params=int(param.size),
+        iterations=int(steps), time_s=round(elapsed, 2), method=method, variant=variant,
+        n_evaluations=int(round(n_eval)), walks=int(walks), bounces=int(bounces), jacobian_walks=jacobian_walks,
+        seed=int(seed), n_params=int(param.size),
         fitted=list(param.names), starts_refined=len(results), starts_at_optimum=len(same),
         unfinished_energy=float(np.max(np.asarray(est.unfinished))),
         mc_error_median=float(np.median(model_std / (meas.std if meas.std is not None else 1.0))),

@@ -139,7 +139,7 @@ def fit_report(result, meas):
         "## Monte Carlo budget",
         "",
         f"{r['walks']} walks per incidence direction, {r['bounces']} bounces per walk{_budget_name(r)}, one fixed key "
-        f"(common random numbers); the Jacobian from the first {r.get('jacobian_walks', r['walks'])} of those walks. "
+        f"(common random numbers); the Jacobian from the first {r['jacobian_walks']} of those walks. "
         "Energy left in unfinished walks: at most "
         f"{r['unfinished_energy']:.2g} of the incident energy.",
     ]

@@ -56,7 +56,8 @@ BUDGETS = {
 }
 """Named Monte Carlo budgets ``(walks per incidence, bounces per walk)`` for ``--budget NAME``
 of ``jaxcos fit`` and ``jaxcos eval``; ``accurate`` is the fit's default (its objective;
-the fit's Jacobian uses the first 128 of those walks), ``paper`` the estimator's. Measured by ``jaxcos bench accuracy`` (``benchmarks/results/accuracy.md``):
+the fit's Jacobian uses the first 128 of those walks), ``paper`` the estimator's.
+Measured by ``jaxcos bench accuracy`` (``benchmarks/results/accuracy.md``):
 the error falls as 1/sqrt(walks) at a cost linear in walks, and 128 bounces leave a
 truncation bias under 0.1% (dewy1; 64 bounces: 1%), so bounces beyond 128 buy
 nothing. ``fast`` is for exploring (Monte Carlo error about twice the 2% noise of the
