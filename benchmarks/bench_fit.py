@@ -70,7 +70,7 @@ def bench(product, max_powell=4000):
                                                                           g2=-0.2, w_g=0.7, albedo_p=0.8,
                                                                           alpha_p=0.2, theta_p=2.0),)))
     solve_lm(problem, x0)  # compile
-    (x_lm, loss_lm, steps), t_lm = _time(lambda: solve_lm(problem, x0))
+    (x_lm, loss_lm, steps, accepted), t_lm = _time(lambda: solve_lm(problem, x0))
     trace = _lm_trace(problem, x0)
     loss_fn = jax.jit(lambda x: problem.loss(x))
     loss_fn(x0).block_until_ready()
@@ -100,7 +100,8 @@ def bench(product, max_powell=4000):
     return dict(product=product, n_params=int(problem.param.size), n_points=int(meas.n_points),
                 full_fit=dict(time_s=t_full, record=full.record), check=checked,
                 forward_s=fwd, jacobian_s=jac, jacobian_in_forwards=jac / fwd,
-                lm=dict(time_s=t_lm, loss=loss_lm, steps=steps, forward_evaluations=(steps + 1) * jac / fwd),
+                lm=dict(time_s=t_lm, loss=loss_lm, steps=steps, accepted=accepted,
+                        forward_evaluations=steps + accepted * jac / fwd),
                 powell=dict(time_s=t_pw, loss=loss_pw, forward_evaluations=nfev, max_evaluations=max_powell),
                 speedup=t_pw / t_lm, lm_loss_not_worse=loss_lm <= loss_pw * (1 + 1e-3),
                 lm_time_to_powell_loss_s=t_reach,

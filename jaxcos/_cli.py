@@ -134,7 +134,7 @@ def _cmd_fit(args):
     r = result.record
     chi2 = f", reduced chi-square {r['reduced_chi2']:.2f}" if "reduced_chi2" in r else ""
     if "reduced_chi2" in r["check"]:
-        chi2 += f" ({r['check']['reduced_chi2']:.2f} under an independent key)"
+        chi2 += f" ({r['check']['reduced_chi2']:.2f} +- {r['check']['reduced_chi2_se']:.2f} under independent keys)"
     print(f"fitted {r['variant']} to {r['n_points']} points in {r['time_s']:.1f} s: L2 {r['l2']:.4g}, "
           f"RMSE {r['rmse']:.4g}{chi2}; {r['starts_at_optimum']} of {r['starts_refined']} refined starts agree. "
           f"Wrote {', '.join(os.path.join(args.out, n) for n in FIT_FILES)}.")

@@ -9,8 +9,8 @@ of the parameters and its Jacobian comes from forward-mode differentiation of
 the walk (of its first :data:`FIT_JACOBIAN_WALKS` walks: a descent direction
 needs no more). The lobe probabilities and the Monte Carlo share of the
 weights are fixed numbers within a solver pass, set again at the start of
-each of :data:`PASSES` passes. Each refined start is then checked under an
-independent key (:func:`check`), which a fit cannot have tuned itself to.
+each of :data:`PASSES` passes. Each refined start is then checked under
+independent keys (:func:`check`), which a fit cannot have tuned itself to.
 
 Parameters are mapped to unbounded coordinates so every iterate is physical:
 ``c_d``, ``w_g`` and albedos by a logistic function onto ``(0, 1)``, ``g1``,
@@ -31,6 +31,7 @@ import time
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 
@@ -72,8 +73,14 @@ check's own Monte Carlo error); a third pass changed little."""
 SCREEN_STEPS = 5
 """Levenberg-Marquardt steps each start gets in the screen (at half the Jacobian's walks, a quarter of the bounces)."""
 CHECK_FACTOR = 4
-"""Every refined start is checked under an independent key with this many times the fit's walks
-(:func:`check`); the lowest ``material_chi2`` there, not the lowest loss, is the fit."""
+"""Every refined start is checked with this many times the fit's walks under independent keys
+(:func:`check`). The fit is the start whose ``material_chi2`` there is lowest, allowing for the check's
+uncertainty: its bound ``material_chi2 + 2 material_chi2_se`` is lowest (not its loss, which another
+key need not reproduce). A material whose estimate rare walks dominate (a near-mirror lobe) cannot
+win on a lucky batch."""
+CHECK_BATCHES = 16
+"""The check's walks run in this many batches under independent keys: pairs of batches estimate
+the material's chi-square and its standard error (:func:`_pair_chi2`)."""
 
 # Free parameters of each variant, in order; sizes follow.
 _FREE = {
@@ -285,16 +292,26 @@ def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe
 
 
 class LevenbergMarquardt(optx.AbstractGaussNewton):
-    """optimistix's Levenberg-Marquardt, also stopped when the loss stops falling.
+    """optimistix's Levenberg-Marquardt, with a Jacobian only where a step is accepted, and a stop on the loss.
+
+    The trust region accepts or rejects a step on the value at the new point
+    alone; optimistix's Gauss-Newton step linearises there too. About half of
+    this fit's steps are rejected: near the optimum the 128-walk Jacobian's
+    slope is not the 1024-walk value's, and the region shrinks for several
+    steps in a row. This solver evaluates the value first and computes the
+    Jacobian (materialised, by forward mode) only when the step is accepted,
+    so a rejected step costs one evaluation instead of a Jacobian. Otherwise
+    it is optimistix's algorithm: its damped Newton descent, classical trust
+    region and Cauchy termination.
 
     Under a fixed key the objective is rough along the parameters that move
     sampled directions (``docs/derivatives.md``). Near its optimum LM then
     creeps: the damping grows after a few rejected steps, and each accepted
     step lowers the loss by a few hundredths of a chi-square unit, far below
-    what the data can tell apart, at the cost of a Jacobian per step. Besides
-    optimistix's Cauchy test on ``rtol`` and ``atol``, this solver stops after
+    what the data can tell apart. So this solver also stops after
     ``patience`` consecutive accepted steps that each lowered the loss by less
-    than ``loss_rtol`` of it.
+    than ``loss_rtol`` of it, and after a rejected step already within the
+    tolerance on ``y`` (a smaller region would propose a smaller one).
     """
 
     rtol: float
@@ -314,15 +331,49 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
         self.loss_rtol, self.patience = loss_rtol, patience
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        return super().init(fn, y, args, options, f_struct, aux_struct, tags), jnp.array(0)
+        # The Jacobian is kept as a matrix (optimistix keeps a linearised function).
+        state = super().init(fn, y, args, options, f_struct, aux_struct, tags)
+        f_info = optx.FunctionInfo.ResidualJac(
+            jnp.zeros(f_struct.shape, f_struct.dtype),
+            lx.MatrixLinearOperator(jnp.zeros(f_struct.shape + y.shape, f_struct.dtype), tags))
+        state = eqx.tree_at(lambda s: (s.f_info, s.descent_state), state, (f_info, self.descent.init(y, f_info)))
+        return state, jnp.array(0)
 
     def step(self, fn, y, args, options, state, tags):
         inner, small = state
-        y, new, aux = super().step(fn, y, args, options, inner, tags)
-        before, after = jnp.sum(inner.f_info.residual ** 2), jnp.sum(new.f_info.residual ** 2)
-        accepted = (new.num_accepted_steps > inner.num_accepted_steps) & (inner.num_accepted_steps >= 1)
-        small = jnp.where(accepted, jnp.where(before - after < self.loss_rtol * before, small + 1, 0), small)
-        new = eqx.tree_at(lambda s: s.terminate, new, new.terminate | (small >= self.patience))
+        residual, aux = fn(inner.y_eval, args)
+        probe = eqx.tree_at(lambda f: f.residual, inner.f_info, residual)
+        size, accept, found, search_state = self.search.step(inner.first_step, y, inner.y_eval, inner.f_info, probe,
+                                                             inner.search_state)
+
+        def accepted(_):
+            jac = jax.jacfwd(lambda x: fn(x, args)[0])(inner.y_eval)
+            f_info = optx.FunctionInfo.ResidualJac(residual, lx.MatrixLinearOperator(jac, tags))
+            y_diff, f_diff = inner.y_eval - y, residual - inner.f_info.residual
+            converged = ((self.norm(y_diff / (self.atol + self.rtol * jnp.abs(inner.y_eval))) < 1)
+                         & (self.norm(f_diff / (self.atol + self.rtol * jnp.abs(residual))) < 1))
+            return inner.y_eval, f_info, aux, self.descent.query(inner.y_eval, f_info, inner.descent_state), converged
+
+        def rejected(_):
+            # a rejected step already within the tolerance on y: the next, in a smaller region, would be too
+            tiny = self.norm(inner.y_eval - y) < self.atol + self.rtol * self.norm(y)
+            return y, inner.f_info, inner.aux, inner.descent_state, tiny
+
+        self.verbose(num_steps=("Step", inner.num_steps), step_size=("Step size", size),
+                     loss_this_step=("Loss on this step", 0.5 * jnp.sum(residual ** 2)),
+                     loss_last_accepted_step=("Loss on the last accepted step",
+                                              0.5 * jnp.sum(inner.f_info.residual ** 2)))
+        y, f_info, aux, descent_state, terminate = jax.lax.cond(accept, accepted, rejected, None)
+        y_descent, result = self.descent.step(size, descent_state)
+        small = jnp.where(accept & (inner.num_accepted_steps >= 1),
+                          jnp.where(jnp.sum(inner.f_info.residual ** 2) - jnp.sum(residual ** 2)
+                                    < self.loss_rtol * jnp.sum(inner.f_info.residual ** 2), small + 1, 0), small)
+        new = dataclasses.replace(
+            inner, first_step=jnp.array(False), y_eval=y + y_descent, search_state=search_state, f_info=f_info,
+            aux=aux, descent_state=descent_state, terminate=terminate | (small >= self.patience),
+            result=optx.RESULTS.where(found == optx.RESULTS.successful, result, found),
+            num_steps=inner.num_steps + 1, num_accepted_steps=inner.num_accepted_steps + jnp.where(accept, 1, 0),
+            num_steps_since_acceptance=jnp.where(accept, 0, inner.num_steps_since_acceptance + 1))
         return y, (new, small), aux
 
     def terminate(self, fn, y, args, options, state, tags):
@@ -336,20 +387,23 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
 def _lm(problem, x0, max_steps, rtol, atol):
     solver = LevenbergMarquardt(rtol=rtol, atol=atol)
     sol = optx.least_squares(lambda x, p: p.residuals(x), solver, x0, args=problem, max_steps=max_steps, throw=False)
-    return sol.value, problem.loss(sol.value), sol.stats["num_steps"]
+    return sol.value, problem.loss(sol.value), sol.stats["num_steps"], sol.state[0].num_accepted_steps
 
 
 @eqx.filter_jit
 def _screen(problem, xs):
     """A few Levenberg-Marquardt steps from each row of ``xs``, batched; returns the ends and their losses."""
-    ends, losses, _ = jax.vmap(lambda x: _lm(problem, x, SCREEN_STEPS, 1e-3, 1e-3))(xs)
+    ends, losses, _, _ = jax.vmap(lambda x: _lm(problem, x, SCREEN_STEPS, 1e-3, 1e-3))(xs)
     return ends, losses
 
 
 def solve_lm(problem, x0, *, max_steps=40, rtol=1e-4, atol=1e-5):
-    """Levenberg-Marquardt from ``x0``; returns ``(x, loss, steps)``."""
-    x, loss, steps = _lm(problem, x0, max_steps, rtol, atol)
-    return x, float(loss), int(steps)
+    """Levenberg-Marquardt from ``x0``; returns ``(x, loss, steps, accepted)``.
+
+    Every step evaluates the residuals; the ``accepted`` ones also their Jacobian.
+    """
+    x, loss, steps, accepted = _lm(problem, x0, max_steps, rtol, atol)
+    return x, float(loss), int(steps), int(accepted)
 
 
 def solve_powell(problem, x0, *, max_evaluations=20000, xtol=1e-4, ftol=1e-8, on_evaluation=None):
@@ -429,7 +483,8 @@ class FitResult:
         record: the ``"fit"`` record of FORMATS.md (plus extra keys).
         model: ``(N, 3)`` the fitted model in the file's quantity.
         model_std: ``(N, 3)`` its Monte Carlo standard error.
-        starts: per refined start, ``(label, loss, material_chi2 of its check)``; the label is
+        starts: per refined start, ``(label, loss, material_chi2, material_chi2_se)`` (the last two
+            from its :func:`check`); the label is
             the screened start's index (0: the default start) or
             ``"default, unscreened"``.
         x: the fitted unbounded coordinates; ``param`` maps them.
@@ -465,37 +520,76 @@ def with_mc_error(problem, meas, x):
     return dataclasses.replace(problem, sigma=sigma)
 
 
-def check(problem, meas, x, *, key, walks):
-    """The material at ``x`` evaluated under an independent ``key`` with ``walks`` walks, against the data.
+def check(problem, meas, x, *, key, walks, batches=CHECK_BATCHES):
+    """The material at ``x`` evaluated under independent keys, ``walks`` walks in all, against the data.
 
     Under its fixed key a fit can follow the Monte Carlo error of that key: a
     near-mirror highlight, for instance, can be matched by a few lucky walks
     that another key does not reproduce. An independent evaluation cannot be
-    tuned that way. Returned (weights: the measurement std, or none without
-    std columns):
+    tuned that way. It runs ``batches`` independent batches of ``walks /
+    batches`` walks (keys ``fold_in(key, b)``); per point and channel, with
+    ``r_b`` the residual of batch ``b``, the product ``r_b r_c`` of two
+    different batches is an unbiased estimate of the squared residual of the
+    exact model, free of Monte Carlo variance. Returned (weights: the
+    measurement std, or none without std columns):
 
-    * ``chi2``: the sum of squared weighted residuals;
-    * ``chi2_mc``: the part of it that the check's own Monte Carlo error
-      contributes in expectation, the sum of its squared weighted standard errors;
-    * ``material_chi2``: ``chi2 - chi2_mc``, an unbiased estimate of the
-      material's own chi-square (a fit keeps the start for which it is lowest:
-      ``chi2`` would also rank the materials by how noisy they are to simulate);
-    * ``reduced_chi2``: ``(chi2 - chi2_mc) / dof``, an unbiased estimate of
-      the reduced chi-square of the material itself (files with std columns);
-    * ``l2``, ``rmse``, ``walks``, ``bounces``.
+    * ``chi2``: the sum of squared weighted residuals of the pooled estimate;
+    * ``material_chi2``: the mean over batch pairs of the weighted sums of
+      ``r_b r_c``, an unbiased estimate of the material's own chi-square (a fit
+      keeps the start for which it is lowest: ``chi2`` would also rank the
+      materials by how noisy they are to simulate);
+    * ``chi2_mc = chi2 - material_chi2``: the check's own Monte Carlo share;
+    * ``material_chi2_se``: its standard error (the jackknife over batches,
+      :func:`_pair_chi2`). It is large where rare walks dominate the estimate
+      (a near-mirror platelet lobe seen off its mirror direction);
+    * ``reduced_chi2`` and ``reduced_chi2_se``: the same per degree of
+      freedom (files with std columns);
+    * ``l2``, ``rmse`` of the pooled estimate, ``walks``, ``batches``, ``bounces``.
     """
-    est = dataclasses.replace(problem, key=key, walks=walks).estimate(x)
-    model = np.asarray(problem.scale * est.f, float)
-    se = np.asarray(problem.scale * est.stderr, float)
-    sigma = np.ones_like(model) if meas.std is None else np.asarray(meas.std, float)
+    if batches < 3 or walks % batches:
+        raise ValueError(f"check needs at least 3 batches that divide the walks; got {walks} walks, {batches} batches.")
+    sub = dataclasses.replace(problem, walks=walks // batches)
+    model = np.stack([problem.scale * np.asarray(dataclasses.replace(sub, key=jax.random.fold_in(key, b)).estimate(x).f,
+                                                 float) for b in range(batches)])
+    sigma = np.ones_like(model[0]) if meas.std is None else np.asarray(meas.std, float)
     real = np.all(np.isfinite(sigma), axis=1)  # padded dummy points (jaxcos.ablate) have an infinite std
-    resid, sigma, se = (model - meas.values)[real], sigma[real], se[real]
-    chi2, chi2_mc = float(np.sum((resid / sigma) ** 2)), float(np.sum((se / sigma) ** 2))
-    out = dict(walks=int(walks), bounces=int(problem.bounces), chi2=chi2, chi2_mc=chi2_mc, material_chi2=chi2 - chi2_mc,
+    r = (model - meas.values)[:, real] / sigma[real]  # (batches, points, 3)
+
+    material, se = _pair_chi2(r)
+    resid = (model.mean(axis=0) - meas.values)[real]
+    chi2 = float(np.sum((resid / sigma[real]) ** 2))
+    out = dict(walks=int(walks), batches=int(batches), bounces=int(problem.bounces), chi2=chi2,
+               chi2_mc=chi2 - material, material_chi2=material, material_chi2_se=se,
                l2=float(np.sum(resid ** 2)), rmse=float(np.sqrt(np.mean(resid ** 2))))
     if meas.std is not None:
-        out["reduced_chi2"] = (chi2 - chi2_mc) / max(resid.size - problem.param.size, 1)
+        dof = max(resid.size - problem.param.size, 1)
+        out.update(reduced_chi2=material / dof, reduced_chi2_se=se / dof)
     return out
+
+
+def _pair_chi2(r):
+    """The pair estimate of the exact model's chi-square from batch residuals ``r`` (``(K, ...)``), and its SE.
+
+    With ``r_b = delta + e_b`` (``delta`` the exact model's weighted residuals,
+    ``e_b`` batch ``b``'s Monte Carlo error, independent across batches), the
+    mean over ordered pairs ``b != c`` of ``r_b . r_c`` is unbiased for
+    ``delta . delta``. Its standard error is the delete-one-batch jackknife's.
+    That overstates the variance of the part quadratic in the errors
+    ``2 (K - 1) / (K - 2)``-fold, a part that falls fast with ``K`` (the same
+    walks in more batches): simulated, the jackknife's standard error was
+    1.7 times the true one at 4 batches, 1.08 times at 16. An unbiased
+    estimate of the variance exists but went negative under heavy-tailed
+    errors (a near-mirror lobe).
+    """
+    k = r.shape[0]
+    r = r.reshape(k, -1)
+    gram = r @ r.T
+    total = gram.sum() - np.trace(gram)
+    estimate = float(total) / (k * (k - 1))
+    # leaving out batch b removes its row and column of the off-diagonal sum
+    leave_one_out = (total - 2 * (gram.sum(axis=1) - np.diag(gram))) / ((k - 1) * (k - 2))
+    se = np.sqrt((k - 1) / k * np.sum((leave_one_out - leave_one_out.mean()) ** 2))
+    return estimate, float(se)
 
 
 def _statistics(meas, model, loss, n_free):
@@ -530,8 +624,9 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         refine: number of best screened starts refined at the full budget
             (:data:`PASSES` passes each), besides the default start as it is
             (the screen's small budget can lead it astray); each is then
-            checked under an independent key at :data:`CHECK_FACTOR` times the
-            walks (:func:`check`), and the best check is the fit.
+            checked with :data:`CHECK_FACTOR` times the walks under
+            independent keys (:func:`check`), and the best check is the fit
+            (:data:`CHECK_FACTOR`).
         fit_t, fit_phi: also fit the optical thickness ``t`` (else fixed at ``t``)
             or the tilt azimuth ``phi_p`` (else 0).
         start: a :class:`Material` to start from instead of the multi-start
@@ -572,29 +667,32 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
 
     results = []
     n_eval = 0
-    # LM per step: a Jacobian (parameters + 1 forwards at jacobian_walks) and, with fewer walks, a value
-    per_step = param.size + 1 if jacobian_walks == walks else 1 + (param.size + 1) * jacobian_walks / walks
+    # LM: a value per step, a Jacobian (parameters + 1 forwards at jacobian_walks) per accepted step
+    per_jacobian = (param.size + 1) * jacobian_walks / walks
     for rank, (index, x) in enumerate(candidates):
         say(f"refining start {rank + 1} of {len(candidates)} ({method}, {PASSES} passes)")
         steps = 0
         for _ in range(PASSES):
             prob = with_mc_error(problem, meas, x)
             if method == "lm":
-                x, loss, n = solve_lm(prob, x)
-                n_eval += (n + 1) * per_step
+                x, loss, n, accepted = solve_lm(prob, x)
+                n_eval += n + accepted * per_jacobian
             else:
                 x, loss, n = solve_powell(prob, x)
                 n_eval += n
             steps += n
         results.append((index, x, loss, steps, prob))
-    say(f"checking {len(results)} refined start{'s' * (len(results) > 1)} under an independent key "
-        f"at {CHECK_FACTOR * walks} walks")
+    check_walks = CHECK_BATCHES * -(-CHECK_FACTOR * walks // CHECK_BATCHES)
+    say(f"checking {len(results)} refined start{'s' * (len(results) > 1)} at {check_walks} walks "
+        f"in {CHECK_BATCHES} batches under independent keys")
     check_key = jax.random.fold_in(key, 1)
-    checks = [check(r[4], meas, r[1], key=check_key, walks=CHECK_FACTOR * walks) for r in results]
-    best = int(np.argmin([c["material_chi2"] for c in checks]))
+    checks = [check(r[4], meas, r[1], key=check_key, walks=check_walks) for r in results]
+    best = int(np.argmin([c["material_chi2"] + 2 * c["material_chi2_se"] for c in checks]))
     index, x, loss, steps, problem = results[best]
-    # Losses of different starts have different weights; their checks share a key and weights.
-    same = [c for c in checks if c["material_chi2"] - checks[best]["material_chi2"] <= 0.01 * checks[best]["chi2"]]
+    # Each start's loss has its own weights and lobe probabilities; on the best start's objective the
+    # starts are compared on one footing (a check cannot tell near-mirror materials apart).
+    common = [float(problem.loss(r[1])) for r in results]
+    same = [c for c in common if c - common[best] <= 0.01 * common[best]]
     est = problem.estimate(x)
     model = np.asarray(problem.scale * est.f)
     model_std = np.asarray(problem.scale * est.stderr)
@@ -609,7 +707,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         mc_error_median=float(np.median(model_std / (meas.std if meas.std is not None else 1.0))),
         check=checks[best],
     )
-    starts_summary = [(r[0], float(r[2]), c["material_chi2"]) for r, c in zip(results, checks)]
+    starts_summary = [(r[0], float(r[2]), c["material_chi2"], c["material_chi2_se"]) for r, c in zip(results, checks)]
     record["reduced_chi2_note"] = ("reduced_chi2 weights residuals by sqrt(std^2 + mc^2), the measurement noise and "
                                    "the model's Monte Carlo error; reduced_chi2_noise_only by std alone.")
     return FitResult(material=param.to_material(x), record=record, model=model, model_std=model_std,
