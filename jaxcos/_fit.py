@@ -359,15 +359,14 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
             tiny = self.norm(inner.y_eval - y) < self.atol + self.rtol * self.norm(y)
             return y, inner.f_info, inner.aux, inner.descent_state, tiny
 
+        before, after = jnp.sum(inner.f_info.residual ** 2), jnp.sum(residual ** 2)
         self.verbose(num_steps=("Step", inner.num_steps), step_size=("Step size", size),
-                     loss_this_step=("Loss on this step", 0.5 * jnp.sum(residual ** 2)),
-                     loss_last_accepted_step=("Loss on the last accepted step",
-                                              0.5 * jnp.sum(inner.f_info.residual ** 2)))
+                     loss_this_step=("Loss on this step", 0.5 * after),
+                     loss_last_accepted_step=("Loss on the last accepted step", 0.5 * before))
         y, f_info, aux, descent_state, terminate = jax.lax.cond(accept, accepted, rejected, None)
         y_descent, result = self.descent.step(size, descent_state)
         small = jnp.where(accept & (inner.num_accepted_steps >= 1),
-                          jnp.where(jnp.sum(inner.f_info.residual ** 2) - jnp.sum(residual ** 2)
-                                    < self.loss_rtol * jnp.sum(inner.f_info.residual ** 2), small + 1, 0), small)
+                          jnp.where(before - after < self.loss_rtol * before, small + 1, 0), small)
         new = dataclasses.replace(
             inner, first_step=jnp.array(False), y_eval=y + y_descent, search_state=search_state, f_info=f_info,
             aux=aux, descent_state=descent_state, terminate=terminate | (small >= self.patience),
@@ -626,7 +625,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
             (the screen's small budget can lead it astray); each is then
             checked with :data:`CHECK_FACTOR` times the walks under
             independent keys (:func:`check`), and the best check is the fit
-            (:data:`CHECK_FACTOR`).
+            (the rule is at :data:`CHECK_FACTOR`).
         fit_t, fit_phi: also fit the optical thickness ``t`` (else fixed at ``t``)
             or the tilt azimuth ``phi_p`` (else 0).
         start: a :class:`Material` to start from instead of the multi-start

@@ -60,9 +60,8 @@ def _check_section(r):
         f"evaluated again in {c['batches']} batches of {c['walks'] // c['batches']} walks under independent keys. "
         f"Per point, the product of two batches' residuals estimates the squared residual of the exact model, "
         f"free of Monte Carlo variance; summed over points and channels ({what}) and averaged over batch pairs, it "
-        "is the column "
-        "\"material chi-square\" above (the raw chi-square would also rank materials by how noisy they are to "
-        "simulate). Its standard error is the jackknife's, leaving out one batch at a time. The fit is the start "
+        "is the column \"material chi-square\" above (the raw chi-square would also rank materials by how noisy "
+        "they are to simulate). Its standard error is the jackknife's, leaving out one batch at a time. The fit is the start "
         "for which the material chi-square plus twice its standard error is lowest.",
     ]
     if weighted:
@@ -142,8 +141,8 @@ def fit_report(result, meas):
         "| start (0 = default; screened unless said) | final loss | material chi-square under independent keys "
         "(see Check) |",
         "|---|---|---|",
-    ] + [f"| {i} | {loss:.6g} | {chi2:.6g} +- {se:.2g} |" for i, loss, chi2, se in result.starts] + (
-        _check_section(r)) + [
+    ] + [f"| {i} | {loss:.6g} | {chi2:.6g} +- {se:.2g} |" for i, loss, chi2, se in result.starts]
+    lines += _check_section(r) + [
         "",
         "## Monte Carlo budget",
         "",
