@@ -4,8 +4,10 @@ Standard grid: ``theta_i`` 0..75 step 5 (16), ``theta_o`` -85..85 step 5 (35);
 t = 16, 512 bounces, 128 walks per incidence direction. For a dewy and a matte
 product it measures compile time, run time (best of several, after
 ``block_until_ready``), walk-steps per second, peak memory (each case in a
-fresh process), the Jacobian against 12 fitted parameters by batched forward
-mode, and the variance and cost of exact against Monte Carlo single scattering.
+fresh process), the fit's Jacobian against its 12 parameters (batched forward
+mode, 8 tangents: ``jaxcos._bench.bsdf_problem``), and the variance and cost of
+exact against Monte Carlo single scattering. Run time and CPU time (all
+threads) are both recorded, with the load average.
 
     python benchmarks/bench_forward.py            # writes benchmarks/results/forward.json
 """
@@ -36,32 +38,33 @@ def _case(kind, product, out):
 
     import jaxcos
 
+    from jaxcos._bench import bsdf_problem
+
     m = jaxcos.published(product)
     q = jaxcos.make_query(*_grid())
     key = jax.random.key(0)
     lp = jaxcos.lobe_probabilities(m)
     walks, bounces = 128, 512
-    L = m.layers[0]
-    x0 = jnp.concatenate([jnp.stack([L.c_d, L.g1, L.g2, L.w_g, L.alpha_p, L.theta_p]), L.albedo_d, L.albedo_p])
-
-    def material(x):
-        return jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=x[0], g1=x[1], g2=x[2], w_g=x[3], alpha_p=x[4],
-                                                    theta_p=x[5], albedo_d=x[6:9], albedo_p=x[9:12]),))
-
     single = "mc" if kind == "forward_mc_single" else "exact"
-    fwd = lambda x: jaxcos.simulate(material(x), q, key, walks=walks, bounces=bounces, lobe_probs=lp,
-                                    single_scattering=single).f
-    fn = jax.jit(jax.jacfwd(fwd)) if kind == "jacobian" else jax.jit(fwd)
+    if kind == "jacobian":  # the fit's Jacobian (coloured forward mode) of the same estimate
+        problem, x0 = bsdf_problem(m, q, key, walks, bounces)
+        fn, arg = jax.jit(jax.jacfwd(problem.residuals)), x0
+    else:
+        fn = jax.jit(lambda m: jaxcos.simulate(m, q, key, walks=walks, bounces=bounces, lobe_probs=lp,
+                                               single_scattering=single).f)
+        arg = m
     t0 = time.perf_counter()
-    jax.block_until_ready(fn(x0))
+    jax.block_until_ready(fn(arg))
     first = time.perf_counter() - t0
-    runs = []
+    runs, cpu = [], []
     for _ in range(3 if kind == "jacobian" else 7):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(x0))
+        t0, c0 = time.perf_counter(), time.process_time()
+        jax.block_until_ready(fn(arg))
         runs.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     run = min(runs)
-    result = dict(kind=kind, product=product, compile_s=first - run, run_s=run, runs_s=runs,
+    result = dict(kind=kind, product=product, compile_s=first - run, run_s=run, runs_s=runs, cpu_s=min(cpu),
+                  load_average=os.getloadavg(),
                   walk_steps_per_s=16 * walks * bounces / run,
                   peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     if kind.startswith("forward"):
@@ -91,7 +94,8 @@ def main():
         f = next(r for r in results if r["product"] == product and r["kind"] == "forward")
         j = next(r for r in results if r["product"] == product and r["kind"] == "jacobian")
         j["ratio_to_forward"] = j["run_s"] / f["run_s"]
-        print(f"{product}: Jacobian / forward = {j['ratio_to_forward']:.1f}")
+        j["cpu_ratio_to_forward"] = j["cpu_s"] / f["cpu_s"]
+        print(f"{product}: Jacobian / forward = {j['ratio_to_forward']:.1f} (wall), {j['cpu_ratio_to_forward']:.1f} (CPU)")
     machine = dict(platform=platform.platform(), processor=platform.processor(), cpus=os.cpu_count(),
                    python=sys.version.split()[0], jax=jax.__version__, backend=jax.default_backend(),
                    load_average=os.getloadavg())

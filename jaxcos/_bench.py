@@ -11,8 +11,8 @@ for a dewy and a matte product on the standard grid (``theta_i`` 0..75 step 5,
   at fixed walks (the truncation bias, measured apart under common random
   numbers: a walk of ``b`` bounces is the prefix of the same walk of 512);
 * the energy left in unfinished walks, the forward time and the time of the
-  fit's Jacobian (batched forward mode against 12 parameters, as
-  ``Problem``'s ``custom_jvp``);
+  fit's Jacobian (``Problem``'s ``custom_jvp``: batched forward mode against
+  12 parameters, 8 tangents);
 * end to end, fits of a synthetic set whose truth is known
   (``measurements/matte2.csv``, truth ``jaxcos.published("matte2")``, 2 % + 0.002
   noise) at several budgets: the fit time, the chi-square of the fitted
@@ -208,27 +208,40 @@ def _forward(material, query, walks, bounces, single, seeds):
                            forward_cpu_s=min(cpu), forward_load=[load_before, _load()])
 
 
+def bsdf_problem(material, query, key, walks, bounces):
+    """The fit's least-squares :class:`~jaxcos._fit.Problem` of the BSDF itself, and ``x`` at ``material``.
+
+    Two-lobe parameterization (12 entries of ``x``), residuals ``f`` (zero
+    data, unit weights), lobe probabilities of ``material``: its Jacobian is
+    the fit's (``jax.jacfwd(problem.residuals)``, coloured forward mode).
+    """
+    import jax.numpy as jnp
+
+    from ._fit import Problem, parameterization
+    from ._walk import lobe_probabilities
+
+    param = parameterization("two_lobe", template=material)
+    n = query.pair_i.shape[0]
+    problem = Problem(param=param, query=query, measured=jnp.zeros((n, 3)), sigma=jnp.ones((n, 3)), scale=1.0,
+                      key=key, lobe_probs=lobe_probabilities(material), walks=walks, bounces=bounces)
+    return problem, param.from_material(material)
+
+
 def _jacobian(material, query, walks, bounces):
-    """Time the Jacobian of the BSDF against the fit's 12 parameters (``jax.jacfwd``: vmapped JVPs)."""
+    """Time the fit's Jacobian of the BSDF against its 12 parameters (:func:`bsdf_problem`)."""
     import jax
     import jax.numpy as jnp
 
-    from ._fit import parameterization
-    from ._walk import lobe_probabilities, simulate
-
-    param = parameterization("two_lobe", template=material)
-    x0 = param.from_material(material)
-    lp = lobe_probabilities(material)
-    key = jax.random.key(1000)
-    fwd = lambda x: simulate(param.to_material(x), query, key, walks=walks, bounces=bounces, lobe_probs=lp).f
-    jac = jax.jit(jax.jacfwd(fwd))
+    problem, x0 = bsdf_problem(material, query, jax.random.key(1000), walks, bounces)
+    jac = jax.jit(jax.jacfwd(problem.residuals))
     load_before = _load()
     _, t_first = _timed(jac, x0)
     cpu = []
     runs = [_timed(jac, x0, cpu=cpu)[1] for _ in range(2 if walks * bounces <= 128 * 512 else 1)]
     return dict(jacobian_s=min(runs), jacobian_runs_s=runs, jacobian_cpu_s=min(cpu),
                 jacobian_compile_s=max(t_first - min(runs), 0.0),
-                jacobian_load=[load_before, _load()], n_params=int(jnp.size(x0)))
+                jacobian_load=[load_before, _load()], n_params=int(jnp.size(x0)),
+                n_tangents=len(problem.param.colouring()[0]))
 
 
 def _errors(estimates, ref, keep):
@@ -514,8 +527,9 @@ def accuracy_table(data):
         f"Error: RMS over kept points, 3 channels and {s['seeds']} keys of (estimate - reference) / reference. "
         "Unfinished: energy still carried by walks after the last bounce (max over incidences and channels). "
         "Truncation bias: RMS relative difference to the same walks at the sweep's most bounces (common random "
-        "numbers, mean over the keys). Jacobian: `jax.jacfwd` against the fit's 12 parameters (batched forward "
-        "mode, as the fit's `custom_jvp`), exact single scattering only, at a subset of budgets.",
+        "numbers, mean over the keys). Jacobian: the fit's (`jax.jacfwd` of its residuals: batched forward mode "
+        "against 12 parameters, coloured into 8 tangents since 2026-11-23), exact single scattering only, at a "
+        "subset of budgets.",
         "",
     ]
     for product in s["products"]:

@@ -157,7 +157,9 @@ def _add_fit(sub):
     p.add_argument("--jacobian-walks", type=int, default=FIT_JACOBIAN_WALKS, metavar="N",
                    help=f"walks of the Jacobian, the first of the objective's walks (default {FIT_JACOBIAN_WALKS})")
     _add_budget(p, "accurate")
-    p.add_argument("--starts", type=int, default=15, help="random starts screened besides the default one (default 15)")
+    p.add_argument("--starts", type=int, default=15,
+                   help="starts screened besides the default one: one of broad tilted platelets, the rest random "
+                        "(default 15)")
     p.add_argument("--start", metavar="PARAMS", help="start from this params.json instead of the multi-start")
     p.add_argument("--t", type=float, default=16.0, help="optical thickness when it is not fitted (default 16)")
     p.add_argument("--fit-t", action="store_true", help="also fit the optical thickness t")

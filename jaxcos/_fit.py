@@ -94,6 +94,8 @@ _SIZE = {"albedo_d": 3, "albedo_p": 3}
 # Default values of the parameters a variant does not fit, and the default start.
 _DEFAULT = dict(t=16.0, c_d=0.7, albedo_d=(0.8, 0.8, 0.8), g1=0.5, g2=-0.2, w_g=0.7,
                 albedo_p=(0.8, 0.8, 0.8), alpha_p=0.2, theta_p=2.0, phi_p=0.0)
+# The second fixed start of the screen: platelets dominate, broad and tilted (matte finishes).
+_PLATELET_START = dict(c_d=0.3, theta_p=45.0, alpha_p=0.5)
 _VARIANT_FIXED = {"two_lobe": {}, "single_lobe": {"w_g": 1.0, "g2": 0.0},
                   "diffusers_only": {"c_d": 1.0}, "platelets_only": {"c_d": 0.0}}
 _EPS = 1e-5
@@ -175,6 +177,29 @@ class Parameterization(eqx.Module):
         values.update({n: part if part.shape[0] > 1 else part[0] for n, part in self._split(v)})
         return Material(layers=(Layer(**values),), variant=self.variant)
 
+    def colouring(self):
+        """Seeds of the compressed Jacobian: ``(seeds, column, channel)``.
+
+        The residuals are flattened ``(N, 3)`` (colour channel last), and an
+        RGB parameter's component ``c`` (``albedo_d[c]``) acts on channel ``c``
+        alone: no random decision of a walk looks at colour (the lobe
+        probabilities are fixed numbers). The three columns of such a
+        parameter never share a row, so one tangent, their sum, gives all
+        three (a Curtis-Powell-Reid colouring): the two-lobe model's 12
+        columns cost 8 forward-mode tangents. ``seeds`` is ``(K, size)``;
+        entry ``j`` of ``x`` reads column ``column[j]`` of the compressed
+        Jacobian, at the rows of channel ``channel[j]`` (``-1``: every row).
+        """
+        seeds, column, channel = [], [], []
+        for n in self.names:
+            k, j = _SIZE.get(n, 1), len(column)
+            seed = np.zeros(self.size)
+            seed[j:j + k] = 1.0
+            column += [len(seeds)] * k
+            channel += list(range(k)) if k > 1 else [-1]
+            seeds.append(seed)
+        return np.array(seeds), np.array(column), np.array(channel)
+
     def bounds(self):
         """``(low, high)``: the physical range of each :meth:`labels` entry, the support of a uniform prior."""
         lows, highs = zip(*[_BOUNDS[n] for n in self.names for _ in range(_SIZE.get(n, 1))])
@@ -250,12 +275,16 @@ def _residuals_jvp(primals, tangents):
     # walk instead would store every bounce's intermediates (gigabytes). With
     # jacobian_walks < walks it is that of the first jacobian_walks walks (the
     # walks' random numbers do not depend on their count, see _walk._uniforms).
+    # The colour channels' columns share tangents (Parameterization.colouring).
     problem, x = primals
     _, dx = tangents
     small = problem.jacobian_walks is not None and problem.jacobian_walks < problem.walks
     sub = dataclasses.replace(problem, walks=problem.jacobian_walks) if small else problem
     fn = lambda v: _residuals.fun(sub, v)
-    y, jac = jax.vmap(lambda e: jax.jvp(fn, (x,), (e,)), out_axes=(None, -1))(jnp.eye(x.shape[0], dtype=x.dtype))
+    seeds, column, channel = problem.param.colouring()
+    y, packed = jax.vmap(lambda e: jax.jvp(fn, (x,), (e,)), out_axes=(None, -1))(jnp.asarray(seeds, x.dtype))
+    row_channel = np.arange(y.shape[0]) % 3
+    jac = packed[:, column] * ((channel < 0) | (channel == row_channel[:, None]))
     if small:
         y = _residuals.fun(problem, x)
     return y, jac @ dx
@@ -390,10 +419,21 @@ def _lm(problem, x0, max_steps, rtol, atol):
 
 
 @eqx.filter_jit
-def _screen(problem, xs):
-    """A few Levenberg-Marquardt steps from each row of ``xs``, batched; returns the ends and their losses."""
-    ends, losses, _, _ = jax.vmap(lambda x: _lm(problem, x, SCREEN_STEPS, 1e-3, 1e-3))(xs)
-    return ends, losses
+def _screen(problem, xs, keys):
+    """A few Levenberg-Marquardt steps from each row of ``xs``, batched; the ends and their batch residuals.
+
+    Each start samples with its own lobe probabilities: a start far from the
+    default one would otherwise be simulated with the wrong lobes, noisily.
+    Each end is then evaluated under every key of ``keys`` (independent batches,
+    for :func:`_pair_chi2`). Returns the ends ``(S, P)`` and residuals ``(S, K, M)``.
+    """
+    def one(x):
+        prob = dataclasses.replace(problem, lobe_probs=lobe_probabilities(problem.param.to_material(x)))
+        end = _lm(prob, x, SCREEN_STEPS, 1e-3, 1e-3)[0]
+        prob = dataclasses.replace(prob, lobe_probs=lobe_probabilities(problem.param.to_material(end)))
+        return end, jax.vmap(lambda k: _residuals.fun(dataclasses.replace(prob, key=k), end))(keys)
+
+    return jax.vmap(one)(xs)
 
 
 def solve_lm(problem, x0, *, max_steps=40, rtol=1e-4, atol=1e-5):
@@ -470,7 +510,7 @@ def random_starts(param, n, rng, tilt=None):
             values.update(theta_p=np.clip(tilt + rng.uniform(-0.5, 0.5), 0.0, 89.9),
                           alpha_p=10 ** rng.uniform(-3, np.log10(0.05)))
         draws.append(np.concatenate([np.atleast_1d(_TRANSFORMS[n_][1](values[n_])) for n_ in param.names]))
-    return jnp.asarray(np.stack(draws), dtype=jnp.result_type(float))
+    return jnp.asarray(np.reshape(draws, (n, param.size)), dtype=jnp.result_type(float))
 
 
 @dataclasses.dataclass
@@ -617,9 +657,13 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         jacobian_walks: the walks of its Jacobian, the first of the same walks
             (at most ``walks``); the screen runs at half of them and a quarter
             of the bounces.
-        starts: number of random starts screened, besides the default start; a
-            third of them start at the tilt of the measured highlight with a
-            narrow ``alpha_p`` (:func:`highlight_tilt`).
+        starts: number of starts screened besides the default start: a fixed
+            one where broad, tilted platelets dominate (``_PLATELET_START``),
+            the others random; a third of the random ones start at the tilt of
+            the measured highlight with a narrow ``alpha_p``
+            (:func:`highlight_tilt`). The screen ranks its ends by the pair
+            estimate of their chi-square (:func:`_pair_chi2`) over
+            :data:`CHECK_BATCHES` independent batches, plus twice its SE.
         refine: number of best screened starts refined at the full budget
             (:data:`PASSES` passes each), besides the default start as it is
             (the screen's small budget can lead it astray); each is then
@@ -654,14 +698,24 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     else:
         rng = np.random.default_rng(seed)
         tilt = highlight_tilt(meas) if "theta_p" in param.names else None
-        pool = jnp.concatenate([x_default[None], random_starts(param, starts, rng, tilt)])
+        fixed = [x_default]
+        if starts >= 1:
+            fixed.append(param.from_material(Material(layers=(Layer(**{**_DEFAULT, "t": t, **_PLATELET_START}),))))
+        pool = jnp.concatenate([jnp.stack(fixed), random_starts(param, starts + 1 - len(fixed), rng, tilt)])
         screen = dataclasses.replace(problem, walks=max(jacobian_walks // 2, 8), bounces=max(bounces // 4, 16),
                                      jacobian_walks=None)
         say(f"screening {pool.shape[0]} starts with a short Levenberg-Marquardt at {screen.walks} walks and "
             f"{screen.bounces} bounces")
-        xs, losses = _screen(screen, pool)
-        losses = np.where(np.isfinite(np.asarray(losses)), np.asarray(losses), np.inf)
-        order = np.argsort(losses)[:refine]
+        keys = jax.vmap(lambda b: jax.random.fold_in(jax.random.fold_in(key, 2), b))(jnp.arange(CHECK_BATCHES))
+        xs, resid = _screen(screen, pool, keys)
+        # rank the ends by the pair estimate of their chi-square: the screen's own loss at so few walks
+        # also ranks the materials by how noisy they are to simulate
+        real = np.isfinite(np.asarray(screen.sigma).reshape(-1))
+        ranks = []
+        for r in np.asarray(resid, float)[:, :, real]:
+            value, se = _pair_chi2(r) if np.all(np.isfinite(r)) else (np.inf, 0.0)
+            ranks.append(value + 2 * se)
+        order = np.argsort(ranks)[:refine]
         candidates = [(str(i), xs[i]) for i in order] + [("default, unscreened", x_default)]
 
     results = []

@@ -138,7 +138,7 @@ def fit_report(result, meas):
         "within 1% of the best's on the best start's objective: final losses are not comparable across starts, "
         "whose weights and lobe probabilities are set where each pass begins):",
         "",
-        "| start (0 = default; screened unless said) | final loss | material chi-square under independent keys "
+        "| start (0 = default, 1 = broad tilted platelets; screened unless said) | final loss | material chi-square under independent keys "
         "(see Check) |",
         "|---|---|---|",
     ] + [f"| {i} | {loss:.6g} | {chi2:.6g} +- {se:.2g} |" for i, loss, chi2, se in result.starts]

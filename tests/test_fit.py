@@ -101,6 +101,28 @@ def test_jacobian_comes_from_the_first_walks():
     assert not np.allclose(jac(full), jac(few))
 
 
+@pytest.mark.parametrize("variant, extra", [("two_lobe", {}), ("single_lobe", {}), ("diffusers_only", {}),
+                                            ("platelets_only", {}), ("two_lobe", {"fit_t": True, "fit_phi": True})])
+def test_coloured_jacobian_is_the_full_one(variant, extra):
+    """The fit's Jacobian (one tangent per RGB parameter) equals ``jax.jacfwd`` of the plain residuals.
+
+    The check can fail: a walk that coupled colour channels (lobe probabilities
+    recomputed from the albedos, say) would put non-zero entries where the
+    colouring assumes zeros.
+    """
+    from jaxcos._fit import _residuals
+
+    data = _synthetic(TRUTH, START)
+    param = parameterization(variant, template=START, **extra)
+    problem = make_problem(data, param, key=jax.random.key(SEED), walks=16, bounces=16, reference=START)
+    x = param.from_material(TRUTH) + 0.1
+    coloured = np.asarray(jax.jacfwd(problem.residuals)(x))
+    plain = np.asarray(jax.jacfwd(lambda v: _residuals.fun(problem, v))(x))
+    seeds, _, _ = param.colouring()
+    assert len(seeds) == len(param.names) < param.size
+    np.testing.assert_allclose(coloured, plain, rtol=1e-5, atol=1e-6 * np.abs(plain).max())
+
+
 CHECK_KEYS, CHECK_WALKS, REF_WALKS = 32, 32, 2 ** 14
 
 
