@@ -415,7 +415,10 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
 def _lm(problem, x0, max_steps, rtol, atol):
     solver = LevenbergMarquardt(rtol=rtol, atol=atol)
     sol = optx.least_squares(lambda x, p: p.residuals(x), solver, x0, args=problem, max_steps=max_steps, throw=False)
-    return sol.value, problem.loss(sol.value), sol.stats["num_steps"], sol.state[0].num_accepted_steps
+    inner = sol.state[0]
+    # the residuals at the last accepted point, the solution (the first step is always accepted): no
+    # further evaluation, and so no further copy of the walk in the compiled program
+    return sol.value, jnp.sum(inner.f_info.residual ** 2), sol.stats["num_steps"], inner.num_accepted_steps
 
 
 @eqx.filter_jit
@@ -431,9 +434,9 @@ def _screen(problem, xs, keys):
         prob = dataclasses.replace(problem, lobe_probs=lobe_probabilities(problem.param.to_material(x)))
         end = _lm(prob, x, SCREEN_STEPS, 1e-3, 1e-3)[0]
         prob = dataclasses.replace(prob, lobe_probs=lobe_probabilities(problem.param.to_material(end)))
-        return end, jax.vmap(lambda k: _residuals.fun(dataclasses.replace(prob, key=k), end))(keys)
+        return end, jax.lax.map(lambda k: _residuals.fun(dataclasses.replace(prob, key=k), end), keys)
 
-    return jax.vmap(one)(xs)
+    return jax.lax.map(one, xs)
 
 
 def solve_lm(problem, x0, *, max_steps=40, rtol=1e-4, atol=1e-5):

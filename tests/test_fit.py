@@ -228,6 +228,21 @@ def test_levenberg_marquardt_linearises_only_at_accepted_steps():
         np.testing.assert_allclose(ours.value, theirs.value, rtol=1e-5)
 
 
+def test_solve_lm_reports_the_loss_of_its_solution():
+    """The loss ``solve_lm`` returns (kept from its last accepted step) is the objective at the point it returns."""
+    from jaxcos._fit import solve_lm
+
+    data = _synthetic(TRUTH, START)
+    param = parameterization("single_lobe", template=START)
+    problem = make_problem(data, param, key=jax.random.key(SEED), walks=16, bounces=16, reference=START)
+    x0 = param.from_material(START)
+    for steps in (1, 6):
+        x, loss, n, accepted = solve_lm(problem, x0, max_steps=steps)
+        assert 1 <= accepted <= n <= steps
+        np.testing.assert_allclose(loss, float(problem.loss(x)), rtol=1e-5)
+    assert loss < float(problem.loss(x0))
+
+
 def test_highlight_tilt_finds_a_near_mirror_highlight():
     """A narrow highlight at theta_o = theta_i + 2 theta_p gives theta_p back within half the viewing step."""
     mirror = jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=0.95, albedo_d=0.8, g1=0.5, g2=0.0, w_g=1.0,
