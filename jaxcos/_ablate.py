@@ -17,7 +17,8 @@ variant             what it keeps                                               
 Protocol, per file:
 
 * ``two_lobe`` by :func:`jaxcos.fit` with its default multi-start (the default
-  start and ``starts`` random ones screened by a short LM at a small budget,
+  start and ``starts`` others, one of broad tilted platelets and the rest
+  random, screened by a short LM at a small budget,
   the ``refine`` best refined besides the default start as it is, the best
   under an independent key kept).
 * Each reduced Monte Carlo variant twice: from the two-lobe fit (as in the
@@ -346,7 +347,8 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
         variants: a subset of :data:`ABLATION_VARIANTS` (or a comma-separated string).
         seed: seeds every fit's Monte Carlo key and random starts.
         walks, bounces: the Monte Carlo budget of every Monte Carlo variant.
-        starts: random starts screened besides the default one, per multi-start.
+        starts: starts screened besides the default one, per multi-start (one of broad tilted
+            platelets, the rest random: :func:`jaxcos.fit`).
         refine: screened starts refined for ``two_lobe``.
         reduced_refine: screened starts refined for each reduced variant's own
             multi-start (the start from the two-lobe fit is refined besides).
@@ -469,7 +471,7 @@ def ablation_report(result):
         "",
         f"{len(result.names)} file(s), variants {', '.join(f'`{v}`' for v in result.variants)}. "
         f"Monte Carlo variants: {s['walks']} walks per incidence, {s['bounces']} bounces, seed {s['seed']}; "
-        f"multi-starts of 1 default + {s['starts']} random starts (two_lobe refines the {s['refine']} best screened "
+        f"multi-starts of 1 default + {s['starts']} other starts, one of broad tilted platelets (two_lobe refines the {s['refine']} best screened "
         f"and the default start unscreened, each reduced variant its {s['reduced_refine']} best and the default, "
         "then the start from the two-lobe fit, keeping the "
         "better by chi-square; a variant beaten by a variant nested in it is refitted from that fit). "

@@ -601,8 +601,7 @@ def check(problem, meas, x, *, key, walks, batches=CHECK_BATCHES):
     resid = (model.mean(axis=0) - meas.values)[real]
     chi2 = float(np.sum((resid / sigma[real]) ** 2))
     out = dict(walks=int(walks), batches=int(batches), bounces=int(problem.bounces), chi2=chi2,
-               chi2_mc=chi2 - material, material_chi2=material, material_chi2_se=se,
-               l2=float(np.sum(resid ** 2)), rmse=float(np.sqrt(np.mean(resid ** 2))))
+               chi2_mc=chi2 - material, material_chi2=material, material_chi2_se=se, **_l2_rmse(resid))
     if meas.std is not None:
         dof = max(resid.size - problem.param.size, 1)
         out.update(reduced_chi2=material / dof, reduced_chi2_se=se / dof)
@@ -634,12 +633,16 @@ def _pair_chi2(r):
     return estimate, float(se)
 
 
+def _l2_rmse(resid):
+    """The paper's L2 (sum of squared differences) and the RMSE of the differences ``resid``."""
+    return dict(l2=float(np.sum(resid ** 2)), rmse=float(np.sqrt(np.mean(resid ** 2))))
+
+
 def _statistics(meas, model, loss, n_free):
     resid = model - meas.values
     n = resid.size
     dof = max(n - n_free, 1)
-    stats = dict(loss=float(loss), l2=float(np.sum(resid ** 2)), rmse=float(np.sqrt(np.mean(resid ** 2))),
-                 n_points=int(meas.values.shape[0]))
+    stats = dict(loss=float(loss), **_l2_rmse(resid), n_points=int(meas.values.shape[0]))
     if meas.std is not None:
         stats["reduced_chi2"] = float(loss / dof)
         stats["reduced_chi2_noise_only"] = float(np.sum((resid / meas.std) ** 2) / dof)
@@ -692,6 +695,8 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     param = parameterization(variant, fit_t=fit_t, fit_phi=fit_phi, template=template)
     key = jax.random.key(seed)
     x_default = param.from_material(template)
+    if int(jacobian_walks) != jacobian_walks or jacobian_walks < 1:
+        raise InputError(f"jacobian_walks must be a positive integer, not {jacobian_walks}.")
     jacobian_walks = min(int(jacobian_walks), int(walks))
     problem = make_problem(meas, param, key=key, walks=walks, bounces=bounces, reference=param.to_material(x_default),
                            jacobian_walks=jacobian_walks)

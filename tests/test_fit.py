@@ -13,6 +13,7 @@ from jaxcos._cli import main
 import optimistix as optx
 
 from jaxcos._fit import LevenbergMarquardt, check, fit, highlight_tilt, make_problem, parameterization
+from jaxcos._errors import InputError
 from jaxcos._measurements import Measurements
 
 # The data are made by the fit's own estimator (same key, budget and lobe
@@ -318,6 +319,8 @@ def test_cli_fit_reports_its_check(tmp_path, capsys):
     assert main(["fit", str(csv), "--out", str(tmp_path / "g"), "--jacobian-walks", "0"]) == 2
     err = capsys.readouterr().err.strip()
     assert "--jacobian-walks" in err and len(err.splitlines()) == 1
+    with pytest.raises(InputError, match="jacobian_walks must be a positive integer"):
+        fit(_synthetic(TRUTH, START), jacobian_walks=0)
 
 
 def test_each_pass_takes_its_lobe_probabilities_where_it_starts(monkeypatch):
