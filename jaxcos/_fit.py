@@ -595,8 +595,8 @@ def check(problem, meas, x, *, key, walks, batches=CHECK_BATCHES):
     if batches < 3 or walks % batches:
         raise ValueError(f"check needs at least 3 batches that divide the walks; got {walks} walks, {batches} batches.")
     sub = dataclasses.replace(problem, walks=walks // batches)
-    model = np.stack([problem.scale * np.asarray(dataclasses.replace(sub, key=jax.random.fold_in(key, b)).estimate(x).f,
-                                                 float) for b in range(batches)])
+    model = np.stack([problem.scale * np.asarray(dataclasses.replace(sub, key=k).estimate(x).f, float)
+                      for k in _batch_keys(key, batches)])
     sigma = np.ones_like(model[0]) if meas.std is None else np.asarray(meas.std, float)
     real = np.all(np.isfinite(sigma), axis=1)  # padded dummy points (jaxcos.ablate) have an infinite std
     r = (model - meas.values)[:, real] / sigma[real]  # (batches, points, 3)
@@ -610,6 +610,16 @@ def check(problem, meas, x, *, key, walks, batches=CHECK_BATCHES):
         dof = max(resid.size - problem.param.size, 1)
         out.update(reduced_chi2=material / dof, reduced_chi2_se=se / dof)
     return out
+
+
+def _batch_keys(key, n):
+    """``n`` independent keys ``fold_in(key, b)``, stacked: the batches of :func:`check` and of the screen."""
+    return jax.vmap(lambda b: jax.random.fold_in(key, b))(jnp.arange(n))
+
+
+def _upper_bound(material_chi2, se):
+    """The number a fit ranks materials by: the pair estimate plus twice its SE (see :data:`CHECK_FACTOR`)."""
+    return material_chi2 + 2 * se
 
 
 def _pair_chi2(r):
@@ -718,15 +728,10 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
                                      jacobian_walks=None)
         say(f"screening {pool.shape[0]} starts with a short Levenberg-Marquardt at {screen.walks} walks and "
             f"{screen.bounces} bounces")
-        keys = jax.vmap(lambda b: jax.random.fold_in(jax.random.fold_in(key, 2), b))(jnp.arange(CHECK_BATCHES))
-        xs, resid = _screen(screen, pool, keys)
+        xs, resid = _screen(screen, pool, _batch_keys(jax.random.fold_in(key, 2), CHECK_BATCHES))
         # rank the ends by the pair estimate of their chi-square: the screen's own loss at so few walks
-        # also ranks the materials by how noisy they are to simulate
-        real = np.isfinite(np.asarray(screen.sigma).reshape(-1))
-        ranks = []
-        for r in np.asarray(resid, float)[:, :, real]:
-            value, se = _pair_chi2(r) if np.all(np.isfinite(r)) else (np.inf, 0.0)
-            ranks.append(value + 2 * se)
+        # also ranks the materials by how noisy they are to simulate (padded points have residual 0)
+        ranks = [_upper_bound(*_pair_chi2(r)) if np.all(np.isfinite(r)) else np.inf for r in np.asarray(resid, float)]
         order = np.argsort(ranks)[:refine]
         candidates = [(str(i), xs[i]) for i in order] + [("default, unscreened", x_default)]
 
@@ -752,7 +757,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         f"in {CHECK_BATCHES} batches under independent keys")
     check_key = jax.random.fold_in(key, 1)
     checks = [check(r[4], meas, r[1], key=check_key, walks=check_walks) for r in results]
-    best = int(np.argmin([c["material_chi2"] + 2 * c["material_chi2_se"] for c in checks]))
+    best = int(np.argmin([_upper_bound(c["material_chi2"], c["material_chi2_se"]) for c in checks]))
     index, x, loss, steps, problem = results[best]
     # Each start's loss has its own weights and lobe probabilities; on the best start's objective the
     # starts are compared on one footing (a check cannot tell near-mirror materials apart).
