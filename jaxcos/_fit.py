@@ -500,12 +500,16 @@ def highlight_tilt(meas):
 
 
 def random_starts(param, n, rng, tilt=None):
-    """``n`` starting vectors drawn uniformly over the physical ranges (``alpha_p`` log-uniformly in [0.003, 1]).
+    """``n`` starting vectors, each parameter drawn uniformly from its own range.
 
-    ``theta_p`` spans [0, 80] degrees: a draw below 30 degrees missed a product
-    whose platelets are tilted by 70 (a synthetic matte2 at ``theta_p = 70``
-    scored reduced chi-square 2.64 against its truth's 1.11; with the whole
-    range, 1.32), and the fit's basin in the tilt is narrow for broad lobes.
+    ``c_d`` in [0.05, 0.95], albedos in [0.3, 0.99], ``g1`` in [-0.3, 0.9],
+    ``g2`` in [-0.6, 0.3], ``w_g`` in [0.2, 0.95], ``alpha_p`` log-uniformly
+    in [0.003, 1], ``theta_p`` in [0, 80] degrees, ``t`` in [1, 30],
+    ``phi_p`` 0: clear of the bounds, where the unbounded coordinates
+    saturate. ``theta_p`` spans nearly its whole range because the fit's
+    basin in the tilt is narrow for broad lobes: drawn below 30 degrees, it
+    missed a product tilted by 70 (a synthetic matte2 at ``theta_p = 70``
+    scored reduced chi-square 2.64 against its truth's 1.11; now 1.32).
 
     With a ``tilt`` (from :func:`highlight_tilt`), a third of them take that
     ``theta_p`` (within half a degree) and a narrow ``alpha_p`` (log-uniform in
