@@ -5,7 +5,8 @@ t = 16, 512 bounces, 128 walks per incidence direction. For a dewy and a matte
 product it measures compile time, run time (best of several, after
 ``block_until_ready``), walk-steps per second, peak memory (each case in a
 fresh process), the fit's Jacobian against its 12 parameters (batched forward
-mode, 8 tangents: ``jaxcos._bench.bsdf_problem``), and the variance and cost of
+mode, 8 tangents: ``jaxcos._bench.bsdf_problem``; its ratio to one forward
+evaluation from alternating runs in the Jacobian's process), and the variance and cost of
 exact against Monte Carlo single scattering. Run time and CPU time (all
 threads) are both recorded, with the load average.
 
@@ -31,6 +32,15 @@ def _grid():
     return ti, to
 
 
+def _timed(fn, arg):
+    """Wall and CPU seconds (all threads) of ``fn(arg)``, finished."""
+    import jax
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    jax.block_until_ready(fn(arg))
+    return time.perf_counter() - t0, time.process_time() - c0
+
+
 def _case(kind, product, out):
     import jax
     import jax.numpy as jnp
@@ -53,20 +63,22 @@ def _case(kind, product, out):
         fn = jax.jit(lambda m: jaxcos.simulate(m, q, key, walks=walks, bounces=bounces, lobe_probs=lp,
                                                single_scattering=single).f)
         arg = m
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(arg))
-    first = time.perf_counter() - t0
-    runs, cpu = [], []
-    for _ in range(3 if kind == "jacobian" else 7):
-        t0, c0 = time.perf_counter(), time.process_time()
-        jax.block_until_ready(fn(arg))
-        runs.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
+    first = _timed(fn, arg)[0]
+    runs, cpu = zip(*[_timed(fn, arg) for _ in range(5 if kind == "jacobian" else 7)])
     run = min(runs)
     result = dict(kind=kind, product=product, compile_s=first - run, run_s=run, runs_s=runs, cpu_s=min(cpu),
                   load_average=os.getloadavg(),
                   walk_steps_per_s=16 * walks * bounces / run,
                   peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    if kind == "jacobian":
+        # The ratio to one forward evaluation from alternating runs in this process: this shared
+        # machine's speed drifts by up to a third between processes, much less within a pair of runs.
+        forward = jax.jit(lambda m: jaxcos.simulate(m, q, key, walks=walks, bounces=bounces, lobe_probs=lp).f)
+        _timed(forward, m)
+        pairs = [(_timed(forward, m), _timed(fn, arg)) for _ in range(5)]
+        (f_wall, f_cpu), (j_wall, j_cpu) = [[min(p[i][k] for p in pairs) for k in (0, 1)] for i in (0, 1)]
+        result.update(paired_runs_s=pairs, paired_forward_s=f_wall, paired_jacobian_s=j_wall,
+                      ratio_to_forward=j_wall / f_wall, cpu_ratio_to_forward=j_cpu / f_cpu)
     if kind.startswith("forward"):
         est = jaxcos.simulate(m, q, key, walks=walks, bounces=bounces, lobe_probs=lp, single_scattering=single)
         rel = np.asarray(est.stderr / jnp.maximum(est.f, 1e-12))
@@ -90,12 +102,11 @@ def main():
             r = results[-1]
             print(f"{product:7s} {kind:18s} compile {r['compile_s']:6.1f} s  run {r['run_s'] * 1e3:7.0f} ms  "
                   f"peak {r['peak_rss_mb']:6.0f} MB", flush=True)
-    for product in ("dewy1", "matte2"):
-        f = next(r for r in results if r["product"] == product and r["kind"] == "forward")
-        j = next(r for r in results if r["product"] == product and r["kind"] == "jacobian")
-        j["ratio_to_forward"] = j["run_s"] / f["run_s"]
-        j["cpu_ratio_to_forward"] = j["cpu_s"] / f["cpu_s"]
-        print(f"{product}: Jacobian / forward = {j['ratio_to_forward']:.1f} (wall), {j['cpu_ratio_to_forward']:.1f} (CPU)")
+    for j in results:
+        if j["kind"] == "jacobian":
+            print(f"{j['product']}: Jacobian / forward = {j['ratio_to_forward']:.1f} (wall), "
+                  f"{j['cpu_ratio_to_forward']:.1f} (CPU), from alternating runs "
+                  f"({j['paired_jacobian_s']:.2f} s / {1e3 * j['paired_forward_s']:.0f} ms)")
     machine = dict(platform=platform.platform(), processor=platform.processor(), cpus=os.cpu_count(),
                    python=sys.version.split()[0], jax=jax.__version__, backend=jax.default_backend(),
                    load_average=os.getloadavg())

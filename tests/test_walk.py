@@ -844,6 +844,23 @@ def test_same_key_same_numbers():
     np.testing.assert_array_equal(np.asarray(f), np.asarray(a.f))
 
 
+def test_incidences_walked_in_sequence_give_the_same_numbers():
+    """``incidence_batch`` (1, or 2 of 5 incidences with a remainder) changes the schedule, not the estimate."""
+    ti, to, po = _t1_pairs()
+    query = jaxcos.make_query(ti, to, po)
+    assert np.unique(ti).size == 5
+    material = jaxcos.published("dewy2")
+    run = lambda batch: jaxcos.simulate(material, query, jax.random.key(4), walks=8, bounces=8, incidence_batch=batch)
+    together = run(None)
+    for batch in (1, 2):
+        apart = run(batch)
+        for name in ("f", "stderr", "reflected", "absorbed_base", "unfinished"):
+            np.testing.assert_allclose(np.asarray(getattr(apart, name)), np.asarray(getattr(together, name)),
+                                       rtol=1e-5, atol=1e-9, err_msg=f"{name}, batch {batch}")
+    other = jaxcos.simulate(material, query, jax.random.key(5), walks=8, bounces=8, incidence_batch=2)
+    assert not np.allclose(np.asarray(other.f), np.asarray(together.f))
+
+
 def test_first_walks_of_a_batch_are_the_smaller_batch():
     """A walk's random numbers do not depend on the batch size (the fit's Jacobian uses the first walks)."""
     from jaxcos._walk import _medium, _walk_one
