@@ -23,12 +23,14 @@ no random decision has a probability that depends on a parameter:
   of a reference material, held fixed) and one-sample MIS: the throughput is multiplied by
   ``W(w -> w') / pdf_mix(w')``, where ``pdf_mix`` is the mixture of the lobe
   densities with those same fixed probabilities. Only the direction within a
-  lobe is a continuous, reparameterized sample.
+  lobe is a continuous sample: by reparameterization (attached), or drawn
+  from the lobes of a fixed reference material (``simulate(sampling=...)``,
+  detached), with ``pdf_mix`` that material's.
 
-With a fixed key, every estimate is then a smooth function of every parameter
-(common random numbers), which is what Levenberg-Marquardt needs; the
+With a fixed key, every estimate is then a continuous function of every
+parameter (common random numbers), and smooth with detached directions; the
 derivative of the estimate is an unbiased estimate of the derivative. See
-``docs/derivatives.md`` for the argument.
+``docs/derivatives.md`` for the argument and the evidence.
 
 Cost: every step evaluates the phase functions of all the lobes present (a
 vectorised walk samples every lobe and selects), and ``walks x J`` NEE
@@ -390,19 +392,22 @@ def lobe_probabilities(material):
     return q / jnp.sum(q, axis=-1, keepdims=True)
 
 
-def _scatter(med, q, w, u_lobe, u1, s):
+def _scatter(med, q, w, u_lobe, u1, s, ref=None):
     """Sample a new direction from the lobe mixture with probabilities ``q``; return it and ``W / pdf_mix`` (RGB).
 
     ``q``: ``(..., 3)`` probabilities of (HG ``g1``, HG ``g2``, platelets),
-    zero for the lobes the variant lacks.
+    zero for the lobes the variant lacks. ``ref``: the layer whose lobes draw
+    the direction and make up ``pdf_mix`` (held fixed: detached sampling);
+    by default ``med``'s own (reparameterized: attached sampling).
     """
     q1, q2, qp = q[..., 0], q[..., 1], q[..., 2]
+    smp = med if ref is None else ref
     candidates = []
     if med.diffusers:
-        g = jnp.where(u_lobe < q1, med.g1, med.g2) if med.two_lobes else med.g1
+        g = jnp.where(u_lobe < q1, smp.g1, smp.g2) if med.two_lobes else smp.g1
         candidates.append(P.hg_sample(w, g, u1, s))
     if med.platelets:
-        candidates.append(P.sggx_sample(w, med.m, med.alpha_p, s))
+        candidates.append(P.sggx_sample(w, smp.m, smp.alpha_p, s))
     if len(candidates) == 1:
         w_new = candidates[0]
     else:
@@ -411,15 +416,18 @@ def _scatter(med, q, w, u_lobe, u1, s):
     f_1 = f_2 = None
     if med.diffusers:
         f_1 = P.hg(w, w_new, med.g1)
-        pdf = pdf + q1 * f_1
+        pdf = pdf + q1 * (f_1 if ref is None else P.hg(w, w_new, ref.g1))
         if med.two_lobes:
             f_2 = P.hg(w, w_new, med.g2)
-            pdf = pdf + q2 * f_2
+            pdf = pdf + q2 * (f_2 if ref is None else P.hg(w, w_new, ref.g2))
     sig_s = f_p = None
     if med.platelets:
         sig_s = P.sggx_sigma(w, med.m, med.alpha_p)
         f_p = P.flake_reflection(w, w_new, med.m, med.alpha_p)  # sigma_S(w) f_p
-        pdf = pdf + qp * f_p / sig_s
+        if ref is None:
+            pdf = pdf + qp * f_p / sig_s
+        else:
+            pdf = pdf + qp * P.flake_reflection(w, w_new, ref.m, ref.alpha_p) / P.sggx_sigma(w, ref.m, ref.alpha_p)
     f_d = f_1 if f_2 is None else med.w_g * f_1 + (1.0 - med.w_g) * f_2
     weight = _combine((f_d, f_p), med.prefactors(med.sigma_t(w, sig_s))) / jnp.maximum(pdf, 1e-30)[..., None]
     return w_new, weight
@@ -445,7 +453,7 @@ def _nee(med, lay, z, w, beta, wo, rate_o, inv_mu_o, sig_o):
     return _combine([None if f is None else f * atten for f in lobes], [None if k is None else k[:, None, :] for k in factors])
 
 
-def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first):
+def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref=None):
     """All walks of one incidence: per-walk NEE sums ``(W, J, 3)`` and energy tallies ``(W, 3)``."""
     dtype = wi.dtype
     mu_o = jnp.maximum(wo[:, 2], _MIN_MU)
@@ -476,7 +484,8 @@ def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first):
             contrib = jnp.where(base[:, None, None], beta[:, None, :] * base_nee[None], contrib)
         count = jnp.where(jnp.logical_and(skip_first, i == 0), 0.0, 1.0).astype(dtype)
         acc = s["acc"] + count * contrib
-        w_new, weight = _scatter(lay, q[0] if med.n_layers == 1 else q[k], s["w"], u[:, 2], u[:, 3], sphere)
+        w_new, weight = _scatter(lay, q[0] if med.n_layers == 1 else q[k], s["w"], u[:, 2], u[:, 3], sphere,
+                                 None if ref is None else ref.take(k))
         if lambertian:
             up = P.cosine_sample(jnp.array([0.0, 0.0, 1.0], dtype), sphere)
             w_new = jnp.where(base[:, None], up, w_new)
@@ -541,7 +550,7 @@ class Estimate(eqx.Module):
 
 @eqx.filter_jit
 def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNCES, single_scattering="exact",
-             lobe_probs=None, incidence_batch=None):
+             lobe_probs=None, incidence_batch=None, sampling=None):
     """Estimate the BSDF of ``material`` for a :class:`Query`.
 
     Args:
@@ -562,6 +571,17 @@ def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNC
             once, the fastest for one evaluation; derivatives through many
             tangents at once run faster with 1 (the fit's Jacobian does so).
             The numbers are the same either way, up to float rounding.
+        sampling: a fixed material whose lobes draw the scattering directions
+            (detached sampling: its parameters are not differentiated, and
+            the weights ``W / pdf`` carry the values and derivatives of
+            ``material``). By default ``material``'s own lobes draw them, by
+            reparameterization (attached sampling). Both are unbiased; with
+            ``lobe_probs`` and ``sampling`` both taken from one fixed material,
+            estimates under one key are a smooth function of every parameter,
+            while attached sampling leaves steep (continuous) features along
+            ``g1``, ``g2``, ``alpha_p``, ``theta_p`` and ``phi_p``
+            (``docs/derivatives.md``). Same variant and layer count as
+            ``material``.
 
     Returns:
         An :class:`Estimate`.
@@ -572,7 +592,11 @@ def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNC
     q = lobe_probabilities(material) if lobe_probs is None else jax.lax.stop_gradient(jnp.asarray(lobe_probs))
     exact = single_scattering == "exact"
     seeds = jax.random.bits(key, (query.wi.shape[0], 2), jnp.uint32)
-    walk = lambda wi, wo, k: _walk_one(med, material.base_albedo, q, wi, wo, k, walks, bounces, exact)
+    ref = None if sampling is None else _medium(jax.lax.stop_gradient(sampling))
+    if ref is not None and (ref.diffusers, ref.platelets, ref.two_lobes, ref.n_layers) != (
+            med.diffusers, med.platelets, med.two_lobes, med.n_layers):
+        raise ValueError("sampling must have the variant and the number of layers of material.")
+    walk = lambda wi, wo, k: _walk_one(med, material.base_albedo, q, wi, wo, k, walks, bounces, exact, ref)
     if incidence_batch is None or incidence_batch >= query.wi.shape[0]:
         acc, escaped, into_base, unfinished = jax.vmap(walk)(query.wi, query.wo, seeds)
     else:

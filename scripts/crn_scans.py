@@ -6,25 +6,29 @@ For dewy1 and matte2 (the published fits, ``t = 16``, black base) and each of
 ten parameters, the BSDF at one angle pair (45, 47 degrees, green) is estimated under one fixed key
 along a scan of that parameter, the others held at their published values:
 
-* thick line and band: the lobe-selection probabilities held fixed at those
-  of the published material (``lobe_probs=``, as ``jaxcos.fit`` does), with the
+* thick line and band: everything a walk samples from held at the published
+  material (``lobe_probs=`` and ``sampling=``, detached directions), with the
   band at +-1 Monte Carlo standard error;
+* medium line: the lobe-selection probabilities held fixed (``lobe_probs=``, as
+  ``jaxcos.fit`` does), the directions drawn from the scanned material's own
+  lobes (attached, by reparameterization): steep continuous features along
+  ``g1``, ``g2``, ``alpha_p``, ``theta_p`` and ``phi_p``;
 * thin line: the lobe probabilities recomputed from the material at every
   point (``simulate``'s default), which moves the lobe thresholds and so
   changes which lobe some walks pick. The probabilities depend on ``c_d``,
-  ``w_g``, the albedos and ``alpha_p`` only: for the other parameters the two
-  lines coincide.
+  ``w_g``, the albedos and ``alpha_p`` only: for the other parameters it
+  coincides with the medium line.
 
-Each panel's title gives the largest "jump" of the fixed-probability scan over
-all 6 pairs x 3 channels, in standard errors: the trapezoid residual
+Each panel's title gives the largest "jump" of each scan over all 6 pairs x 3
+channels, in standard errors: the trapezoid residual
 ``|f(s_k+1) - f(s_k) - (f'(s_k) + f'(s_k+1)) ds / 2|`` (``f'`` by forward-mode
 AD, ``s`` the scan variable, logarithmic for ``t`` and ``alpha_p``) over the
-smaller standard error of the two points; and the same for the recomputed scan.
-See the section "Evidence" of ``docs/derivatives.md`` and
-``tests/test_gradients.py`` for what the numbers mean.
+smaller standard error of the two points. See the section "Evidence" of
+``docs/derivatives.md`` and ``tests/test_gradients.py`` for what the numbers
+mean.
 
 Budget: ``--walks`` walks, 64 bounces, ``--points`` points per scan, one
-compiled program; about a minute on two CPU cores.
+compiled programs; about two minutes on two CPU cores.
 """
 
 import argparse
@@ -71,12 +75,16 @@ def _material(v):
     return jaxcos.Material(layers=(layer,))
 
 
-def _program(walks):
+MODES = ("detached", "attached", "recomputed")
+
+
+def _program(walks, detached):
     query = jaxcos.make_query(TI, TO)
 
-    def one(v, dv, lp, key):
+    def one(v, dv, lp, key, ref):
         def est(v):
-            e = jaxcos.simulate(_material(v), query, key, walks=walks, bounces=BOUNCES, lobe_probs=lp)
+            e = jaxcos.simulate(_material(v), query, key, walks=walks, bounces=BOUNCES, lobe_probs=lp,
+                                sampling=_material(ref) if detached else None)
             return e.f, e.stderr
 
         (f, se), (df, _) = jax.jvp(est, (v,), (dv,))
@@ -85,41 +93,42 @@ def _program(walks):
     return jax.jit(jax.vmap(one))
 
 
-def _run(program, v, dv, lp):
+def _run(program, v, dv, lp, ref):
     n, out = len(v), []
     key = jax.random.key(KEY)
     for a in range(0, n, CHUNK):
         idx = np.minimum(np.arange(a, a + CHUNK), n - 1)
-        res = program(v[idx], dv[idx], lp[idx], jnp.stack([key] * CHUNK))
+        res = program(v[idx], dv[idx], lp[idx], jnp.stack([key] * CHUNK), ref[idx])
         out.append([np.asarray(r)[: min(CHUNK, n - a)] for r in res])
     return tuple(np.concatenate([o[i] for o in out]) for i in range(3))
 
 
-def scans(program, points):
-    """``{(product, name, recomputed): (x, s, f, se, df)}`` with f, se, df of shape ``(points, 18)``."""
+def scans(walks, points):
+    """``{(product, name, mode): (x, s, f, se, df)}`` with f, se, df of shape ``(points, 18)``."""
     lobe = jax.jit(jaxcos.lobe_probabilities)
-    rows, v_all, dv_all, lp_all = [], [], [], []
-    for product in PRODUCTS:
-        material = jaxcos.published(product)
-        v0, lp0 = _vec(material), np.asarray(jaxcos.lobe_probabilities(material))
-        for name, (lo, hi, log, _) in SCANS.items():
-            s = np.linspace(np.log(lo), np.log(hi), points) if log else np.linspace(lo, hi, points)
-            x = np.exp(s) if log else s
-            for recomputed in (False, True):
-                rows.append((product, name, recomputed, x, s))
+    out = {}
+    for mode in MODES:
+        rows, v_all, dv_all, lp_all, ref_all = [], [], [], [], []
+        for product in PRODUCTS:
+            material = jaxcos.published(product)
+            v0, lp0 = _vec(material), np.asarray(jaxcos.lobe_probabilities(material))
+            for name, (lo, hi, log, _) in SCANS.items():
+                s = np.linspace(np.log(lo), np.log(hi), points) if log else np.linspace(lo, hi, points)
+                x = np.exp(s) if log else s
+                rows.append((product, name, x, s))
                 for xi in x:
                     v = v0.copy()
                     v[IDX[name]] = xi
                     dv = np.zeros_like(v)
                     dv[IDX[name]] = xi if log else 1.0
-                    v_all.append(v), dv_all.append(dv)
-                    lp_all.append(np.asarray(lobe(_material(jnp.asarray(v)))) if recomputed else lp0)
-    f, se, df = _run(program, np.array(v_all), np.array(dv_all), np.array(lp_all, np.float32))
-    out = {}
-    for i, (product, name, recomputed, x, s) in enumerate(rows):
-        sl = slice(i * points, (i + 1) * points)
-        out[product, name, recomputed] = (x, s, f[sl].reshape(points, -1), se[sl].reshape(points, -1),
-                                          df[sl].reshape(points, -1))
+                    v_all.append(v), dv_all.append(dv), ref_all.append(v0)
+                    lp_all.append(np.asarray(lobe(_material(jnp.asarray(v)))) if mode == "recomputed" else lp0)
+        f, se, df = _run(_program(walks, mode == "detached"), np.array(v_all), np.array(dv_all),
+                         np.array(lp_all, np.float32), np.array(ref_all))
+        for i, (product, name, x, s) in enumerate(rows):
+            sl = slice(i * points, (i + 1) * points)
+            out[product, name, mode] = (x, s, f[sl].reshape(points, -1), se[sl].reshape(points, -1),
+                                        df[sl].reshape(points, -1))
     return out
 
 
@@ -137,21 +146,23 @@ def figure(results, path, walks):
     for p, product in enumerate(PRODUCTS):
         for j, (name, (lo, hi, log, label)) in enumerate(SCANS.items()):
             ax = axes[2 * p + j // ncol, j % ncol]
-            x, s, f, se, df = results[product, name, False]
-            xr, sr, fr, ser, dfr = results[product, name, True]
+            x, s, f, se, df = results[product, name, "detached"]
             ax.fill_between(x, f[:, comp] - se[:, comp], f[:, comp] + se[:, comp], color="C0", alpha=0.25, lw=0)
-            ax.plot(x, f[:, comp], color="C0", lw=1.6, label="lobe probabilities fixed")
-            ax.plot(xr, fr[:, comp], color="C3", lw=0.7, label="recomputed at each point")
+            ax.plot(x, f[:, comp], color="C0", lw=1.8, label="lobe probabilities and directions fixed (detached)")
+            ax.plot(x, results[product, name, "attached"][2][:, comp], color="C1", lw=1.0,
+                    label="lobe probabilities fixed, directions attached")
+            ax.plot(x, results[product, name, "recomputed"][2][:, comp], color="C3", lw=0.6,
+                    label="lobe probabilities recomputed at each point")
             if log:
                 ax.set_xscale("log")
             ax.set_xlabel(label)
-            ax.set_title(f"{product}: max jump/SE {jump_fraction(s, f, se, df):.2g} | "
-                         f"recomp. {jump_fraction(sr, fr, ser, dfr):.2g}", fontsize=8.5)
+            jumps = " | ".join(f"{jump_fraction(*results[product, name, m][1:]):.2g}" for m in MODES)
+            ax.set_title(f"{product}: max jump/SE {jumps}", fontsize=8.5)
             if j % ncol == 0:
                 ax.set_ylabel("f(45°, 47°), green [1/sr]")
     axes[0, 0].legend(fontsize=8, loc="best")
     fig.suptitle(f"Estimates under one fixed key ({walks} walks, {BOUNCES} bounces) along 1-D parameter scans, "
-                 f"band: ±1 standard error", fontsize=12)
+                 f"band: ±1 standard error; titles: max jump/SE detached | attached | recomputed", fontsize=12)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -164,14 +175,13 @@ def main():
     parser.add_argument("--points", type=int, default=81)
     args = parser.parse_args()
     start = time.time()
-    results = scans(_program(args.walks), args.points)
+    results = scans(args.walks, args.points)
     figure(results, args.out, args.walks)
     print(f"max jump / SE over all pairs and channels ({args.walks} walks, {args.points} points):")
     for product in PRODUCTS:
         for name in SCANS:
-            fixed = jump_fraction(*results[product, name, False][1:])
-            recomputed = jump_fraction(*results[product, name, True][1:])
-            print(f"  {product:7s} {name:10s} fixed {fixed:8.3f}   recomputed {recomputed:8.3f}")
+            print(f"  {product:7s} {name:10s} " + "   ".join(
+                f"{mode} {jump_fraction(*results[product, name, mode][1:]):8.3f}" for mode in MODES))
     print(f"wrote {os.path.normpath(args.out)} in {time.time() - start:.0f} s")
 
 

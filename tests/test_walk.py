@@ -861,6 +861,43 @@ def test_incidences_walked_in_sequence_give_the_same_numbers():
     assert not np.allclose(np.asarray(other.f), np.asarray(together.f))
 
 
+def test_directions_drawn_from_the_material_itself_give_the_same_numbers():
+    """``sampling=material`` (detached) draws the same directions with the same weights as the default."""
+    query = jaxcos.make_query([15.0, 45.0, 70.0], [-40.0, 47.0, 10.0])
+    material = jaxcos.published("dewy1")
+    run = lambda **kw: jaxcos.simulate(material, query, jax.random.key(3), walks=16, bounces=32, **kw).f
+    np.testing.assert_allclose(np.asarray(run(sampling=material)), np.asarray(run()), rtol=1e-5, atol=1e-9)
+    with pytest.raises(ValueError, match="variant"):
+        run(sampling=jaxcos.with_variant(material, "diffusers_only"))
+
+
+@pytest.mark.slow
+def test_directions_drawn_from_another_material_are_unbiased():
+    """Detached sampling from lobes unlike the material's (``g`` 0.3 for 0.55, ``alpha_p`` 0.3 for 0.13,
+    ``theta_p`` off by 8 degrees) estimates the same BSDF as the default, within the standard errors.
+
+    Two independent keys, 4096 walks each; z per point and channel against a Sidak bound at 1 %
+    family-wise (measured: RMS z 1.16, max 2.40 of 3.72). Drawing the directions from the other HG
+    lobes but dividing by the material's own HG densities (a wrong ``W / pdf``) fails it: max |z| 12.1.
+    """
+    ti, to, po = _t1_pairs()
+    keep = np.isin(ti, (0.0, 30.0, 60.0)) & np.isin(to, (-60.0, -30.0, 0.0, 30.0, 60.0, 75.0))
+    query = jaxcos.make_query(ti[keep], to[keep], po[keep])
+    material = jaxcos.published("dewy1")
+    layer = material.layers[0]
+    other = Material(layers=(Layer(**{**{f: getattr(layer, f) for f in ("t", "c_d", "albedo_d", "w_g", "albedo_p",
+                                                                        "phi_p")},
+                                      "g1": 0.3, "g2": 0.0, "alpha_p": 0.3, "theta_p": float(layer.theta_p) + 8.0}),))
+    budget = dict(walks=4096, bounces=64, lobe_probs=jaxcos.lobe_probabilities(material))
+    plain = jaxcos.simulate(material, query, jax.random.key(11), **budget)
+    detached = jaxcos.simulate(material, query, jax.random.key(12), sampling=other, **budget)
+    z = np.asarray((detached.f - plain.f) / jnp.hypot(detached.stderr, plain.stderr)).ravel()
+    bound = stats.norm.isf((1 - 0.99 ** (1 / z.size)) / 2)
+    print(f"\n[detached] {z.size} comparisons: RMS z {np.sqrt(np.mean(z ** 2)):.2f}, max |z| {np.abs(z).max():.2f} "
+          f"(bound {bound:.2f})")
+    assert np.abs(z).max() < bound
+
+
 def test_first_walks_of_a_batch_are_the_smaller_batch():
     """A walk's random numbers do not depend on the batch size (the fit's Jacobian uses the first walks)."""
     from jaxcos._walk import _medium, _walk_one
