@@ -4,7 +4,7 @@ The objective is the sum of squared residuals ``(model - measured) / std``
 (``std = 1`` when the file has no standard deviations), in the file's own
 quantity, over every measured point and colour channel. The model is the
 Monte Carlo BSDF under a fixed key and fixed lobe-selection probabilities
-(common random numbers), so the objective is a deterministic, continuous function
+(common random numbers), so the objective is a deterministic, smooth function
 of the parameters and its Jacobian comes from forward-mode differentiation of
 the walk (of its first :data:`FIT_JACOBIAN_WALKS` walks: a descent direction
 needs no more). The lobe probabilities and the Monte Carlo share of the
@@ -59,21 +59,17 @@ FIT_BOUNCES = 128
 unfinished walks for the four published products (256 bounces: 2.2e-5), at
 half the cost; every fit reports what its walks left unfinished."""
 
-PASSES = 4
+PASSES = 2
 """Solver passes per refined start. A pass holds the lobe-selection
 probabilities and the Monte Carlo share of the weights fixed, at their values
 at its start (:func:`with_mc_error`); a start far from the optimum sets them
 badly (a near-mirror start samples the platelet lobe where the optimum
 scatters in the diffusers), so each further pass sets them again where the
-previous one ended. On the bundled sets a second pass took the material's
+previous one ended. On the bundled sets the second pass took the material's
 reduced chi-square under an independent key from 1.80 to 1.16 (dewy1) and
 from 1.37 to 1.09 (matte1), the truth's being 1.0-1.15, and dewy2's
 highlight start from a check chi-square of 61896 to 7058 (of which 6500 the
-check's own Monte Carlo error). Four shorter passes (:data:`PASS_STEPS`)
-instead of two of up to 40 steps took dewy2 from 3.49 +- 0.55 to 1.70 +-
-0.54, the others within their errors (``benchmarks/RESULTS.md``)."""
-PASS_STEPS = 15
-"""Levenberg-Marquardt steps at most per pass."""
+check's own Monte Carlo error); a third pass changed little."""
 SCREEN_STEPS = 5
 """Levenberg-Marquardt steps each start gets in the screen (at half the Jacobian's walks, a quarter of the bounces)."""
 CHECK_FACTOR = 4
@@ -781,7 +777,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         for _ in range(PASSES):
             prob = with_mc_error(problem, meas, x)
             if method == "lm":
-                x, loss, n, accepted = solve_lm(prob, x, max_steps=PASS_STEPS)
+                x, loss, n, accepted = solve_lm(prob, x)
                 n_eval += n + accepted * per_jacobian
             else:
                 x, loss, n = solve_powell(prob, x)
