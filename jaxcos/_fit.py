@@ -270,6 +270,11 @@ def _residuals(problem, x):
     return ((problem.model(x) - problem.measured) / problem.sigma).reshape(-1)
 
 
+def _jacobian_walks(problem):
+    """The walks the Jacobian of ``problem`` is taken from: ``jacobian_walks``, at most ``walks``."""
+    return problem.walks if problem.jacobian_walks is None else min(problem.jacobian_walks, problem.walks)
+
+
 def _jacobian(problem, x):
     """The residuals' Jacobian ``(M, P)`` at ``x`` and the residuals it comes with.
 
@@ -285,8 +290,7 @@ def _jacobian(problem, x):
     tangents stay in cache (not profiled); one evaluation is fastest
     vectorised.
     """
-    small = problem.jacobian_walks is not None and problem.jacobian_walks < problem.walks
-    sub = dataclasses.replace(problem, walks=problem.jacobian_walks if small else problem.walks, incidence_batch=1)
+    sub = dataclasses.replace(problem, walks=_jacobian_walks(problem), incidence_batch=1)
     fn = lambda v: _residuals.fun(sub, v)
     seeds, column, channel = problem.param.colouring()
     y, packed = jax.vmap(lambda e: jax.jvp(fn, (x,), (e,)), out_axes=(None, -1))(jnp.asarray(seeds, x.dtype))
@@ -299,7 +303,7 @@ def _residuals_jvp(primals, tangents):
     problem, x = primals
     _, dx = tangents
     jac, y = _jacobian(problem, x)
-    if problem.jacobian_walks is not None and problem.jacobian_walks < problem.walks:
+    if _jacobian_walks(problem) < problem.walks:
         y = _residuals.fun(problem, x)
     return y, jac @ dx
 

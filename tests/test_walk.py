@@ -18,6 +18,7 @@ References used:
 * a zero-thickness stack over a Lambertian base, ``f = rho / pi`` exactly.
 """
 
+import dataclasses
 import math
 import time
 
@@ -885,9 +886,7 @@ def test_directions_drawn_from_another_material_are_unbiased():
     query = jaxcos.make_query(ti[keep], to[keep], po[keep])
     material = jaxcos.published("dewy1")
     layer = material.layers[0]
-    other = Material(layers=(Layer(**{**{f: getattr(layer, f) for f in ("t", "c_d", "albedo_d", "w_g", "albedo_p",
-                                                                        "phi_p")},
-                                      "g1": 0.3, "g2": 0.0, "alpha_p": 0.3, "theta_p": float(layer.theta_p) + 8.0}),))
+    other = Material(layers=(dataclasses.replace(layer, g1=0.3, g2=0.0, alpha_p=0.3, theta_p=layer.theta_p + 8.0),))
     budget = dict(walks=4096, bounces=64, lobe_probs=jaxcos.lobe_probabilities(material))
     plain = jaxcos.simulate(material, query, jax.random.key(11), **budget)
     detached = jaxcos.simulate(material, query, jax.random.key(12), sampling=other, **budget)
