@@ -316,7 +316,8 @@ def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe
     default they are those of ``reference`` (a material) or of the default start.
     """
     if lobe_probs is None:
-        lobe_probs = lobe_probabilities(reference if reference is not None else param.to_material(jnp.zeros(param.size)))
+        lobe_probs = (lobe_probabilities(reference) if reference is not None
+                      else _lobe_probabilities_at(param, jnp.zeros(param.size)))
     dtype = jnp.result_type(float)
     sigma = np.ones_like(meas.values) if meas.std is None else np.asarray(meas.std)
     if np.any(sigma <= 0):
@@ -462,9 +463,9 @@ def _screen(problem, xs, keys):
     for :func:`_pair_chi2`). Returns the ends ``(S, P)`` and residuals ``(S, K, M)``.
     """
     def one(x):
-        prob = dataclasses.replace(problem, lobe_probs=lobe_probabilities(problem.param.to_material(x)))
+        prob = dataclasses.replace(problem, lobe_probs=_lobe_probabilities_at(problem.param, x))
         end = _lm(prob, x, SCREEN_STEPS, 1e-3, 1e-3)[0]
-        prob = dataclasses.replace(prob, lobe_probs=lobe_probabilities(problem.param.to_material(end)))
+        prob = dataclasses.replace(prob, lobe_probs=_lobe_probabilities_at(problem.param, end))
         return end, jax.lax.map(lambda k: _residuals.fun(dataclasses.replace(prob, key=k), end), keys)
 
     return jax.lax.map(one, xs)
@@ -593,13 +594,24 @@ def with_mc_error(problem, meas, x):
     point the walks overestimate also gets a large standard error) and the
     weights would bias the fit. Files without std columns stay unweighted.
     """
-    problem = dataclasses.replace(problem, lobe_probs=lobe_probabilities(problem.param.to_material(x)))
+    problem = dataclasses.replace(problem, lobe_probs=_lobe_probabilities_at(problem.param, x))
     if meas.std is None:
         return problem
-    est = problem.estimate(x)
+    return dataclasses.replace(problem, sigma=_mc_sigma(problem.estimate(x), jnp.asarray(meas.std, problem.sigma.dtype),
+                                                        problem.scale))
+
+
+@eqx.filter_jit
+def _mc_sigma(est, std, scale):
+    """The weights' ``sqrt(std^2 + s_mc^2)`` of :func:`with_mc_error` (one compiled program, not one per operation)."""
     rel = jnp.median(est.stderr / jnp.maximum(jnp.abs(est.f), 1e-12))
-    sigma = jnp.sqrt(jnp.asarray(meas.std, problem.sigma.dtype) ** 2 + (rel * problem.scale * est.f) ** 2)
-    return dataclasses.replace(problem, sigma=sigma)
+    return jnp.sqrt(std ** 2 + (rel * scale * est.f) ** 2)
+
+
+@eqx.filter_jit
+def _lobe_probabilities_at(param, x):
+    """The lobe probabilities of the material at ``x`` (one compiled program, not one per operation)."""
+    return lobe_probabilities(param.to_material(x))
 
 
 def check(problem, meas, x, *, key, walks, batches=CHECK_BATCHES):

@@ -110,11 +110,13 @@ class Query(eqx.Module):
     pair_j: jnp.ndarray
 
 
+@jax.jit
 def _direction_in(theta_deg):
     th = jnp.deg2rad(theta_deg)
     return jnp.stack([-jnp.sin(th), jnp.zeros_like(th), jnp.cos(th)], axis=-1)
 
 
+@jax.jit
 def _direction_out(theta_deg, phi_deg):
     th, ph = jnp.deg2rad(theta_deg), jnp.deg2rad(phi_deg)
     return jnp.stack([jnp.sin(th) * jnp.cos(ph), jnp.sin(th) * jnp.sin(ph), jnp.cos(th)], axis=-1)
@@ -364,6 +366,7 @@ def _flight(med, lambertian, z, k, w, beta, u_sel, u_fl):
     return z_new, choice, beta * weight[..., None], base, escaped, into_base
 
 
+@eqx.filter_jit
 def lobe_probabilities(material):
     """Lobe-selection probabilities ``(L, 3)`` (Henyey-Greenstein 1, 2, platelets) for walks in ``material``.
 
