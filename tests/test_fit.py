@@ -367,7 +367,9 @@ def test_each_pass_takes_its_lobe_probabilities_where_it_starts(monkeypatch):
     assert fitting.PASSES == 2 and len(calls) == 2 * result.record["starts_refined"] == 4
     for first, second in (calls[0:2], calls[2:4]):
         np.testing.assert_array_equal(second[1], first[2])
-        np.testing.assert_allclose(second[0].lobe_probs, lobe_probabilities(result.param.to_material(first[2])))
+        # to float32 rounding: the fit maps x to the material and its probabilities in one compiled program
+        np.testing.assert_allclose(second[0].lobe_probs, lobe_probabilities(result.param.to_material(first[2])),
+                                   rtol=4 * np.finfo(np.float32).eps)
         assert not np.allclose(first[0].lobe_probs, second[0].lobe_probs)
 
 
