@@ -129,14 +129,14 @@ def main(products, max_powell=4000):
             r["machine"] = dict(platform=platform.platform(), cpus=os.cpu_count(), jax=jax.__version__,
                                 load_average=os.getloadavg())
             data["runs"].append(r)
-            print(f"{product}: full fit {r['full_fit']['time_s']:.0f} s; from the {r['start']} start LM {r['lm']['time_s']:.1f} s "
-                  f"loss {r['lm']['loss']:.1f} ({r['lm']['forward_evaluations']:.0f} forward evals), "
-                  f"Powell {r['powell']['time_s']:.1f} s loss {r['powell']['loss']:.1f} "
-                  f"({r['powell']['forward_evaluations']} evals); speed-up {r['speedup']:.1f}; LM reaches Powell's loss in "
-                  f"{r['lm_time_to_powell_loss_s']} s; both reach {r['same_loss']['loss']:.1f} in LM "
-                  f"{r['same_loss']['lm_s']:.1f} s, Powell {r['same_loss']['powell_s']:.1f} s; "
-                  "reduced chi-square under an independent key: LM "
-                  f"{r['check']['lm'].get('reduced_chi2')}, Powell {r['check']['powell'].get('reduced_chi2')}", flush=True)
+            lm, pw, same, chk = r["lm"], r["powell"], r["same_loss"], r["check"]
+            print(f"{product}: full fit {r['full_fit']['time_s']:.0f} s; from the {r['start']} start "
+                  f"LM {lm['time_s']:.1f} s loss {lm['loss']:.1f} ({lm['forward_evaluations']:.0f} forward evals), "
+                  f"Powell {pw['time_s']:.1f} s loss {pw['loss']:.1f} ({pw['forward_evaluations']} evals); "
+                  f"speed-up {r['speedup']:.1f}; LM reaches Powell's loss in {r['lm_time_to_powell_loss_s']} s; "
+                  f"both reach {same['loss']:.1f} in LM {same['lm_s']:.1f} s, Powell {same['powell_s']:.1f} s; "
+                  "reduced chi-square under an independent key: "
+                  f"LM {chk['lm'].get('reduced_chi2')}, Powell {chk['powell'].get('reduced_chi2')}", flush=True)
             with open(path, "w") as fh:
                 json.dump(data, fh, indent=2)
 
