@@ -28,7 +28,7 @@ smaller standard error of the two points. See the section "Evidence" of
 mean.
 
 Budget: ``--walks`` walks, 64 bounces, ``--points`` points per scan, one
-compiled programs; about two minutes on two CPU cores.
+compiled program per scheme; about two minutes on two CPU cores.
 """
 
 import argparse
@@ -105,7 +105,6 @@ def _run(program, v, dv, lp, ref):
 
 def scans(walks, points):
     """``{(product, name, mode): (x, s, f, se, df)}`` with f, se, df of shape ``(points, 18)``."""
-    lobe = jax.jit(jaxcos.lobe_probabilities)
     out = {}
     for mode in MODES:
         rows, v_all, dv_all, lp_all, ref_all = [], [], [], [], []
@@ -122,7 +121,7 @@ def scans(walks, points):
                     dv = np.zeros_like(v)
                     dv[IDX[name]] = xi if log else 1.0
                     v_all.append(v), dv_all.append(dv), ref_all.append(v0)
-                    lp_all.append(np.asarray(lobe(_material(jnp.asarray(v)))) if mode == "recomputed" else lp0)
+                    lp_all.append(np.asarray(jaxcos.lobe_probabilities(_material(jnp.asarray(v)))) if mode == "recomputed" else lp0)
         f, se, df = _run(_program(walks, mode == "detached"), np.array(v_all), np.array(dv_all),
                          np.array(lp_all, np.float32), np.array(ref_all))
         for i, (product, name, x, s) in enumerate(rows):

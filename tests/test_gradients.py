@@ -113,11 +113,8 @@ def _run(lambertian, v, dv, lp, keys, ref=None):
     return tuple(np.concatenate([o[i] for o in out]) for i in range(3))
 
 
-_lobe_probabilities = eqx.filter_jit(jaxcos.lobe_probabilities)
-
-
 def _lobe_probs(v, lambertian):
-    return np.asarray(_lobe_probabilities(_material(jnp.asarray(v), lambertian)))
+    return np.asarray(jaxcos.lobe_probabilities(_material(jnp.asarray(v), lambertian)))
 
 
 # --- 1. grad, jvp and jacfwd agree ---------------------------------------------------------
