@@ -283,7 +283,7 @@ class _Target(eqx.Module):
 def _estimate(problem, v):
     """The estimate at the physical values ``v`` under the key, budget and lobe probabilities of ``problem``."""
     return simulate(problem.param.physical_to_material(v), problem.query, problem.key, walks=problem.walks,
-                    bounces=problem.bounces, lobe_probs=problem.lobe_probs)
+                    bounces=problem.bounces, lobe_probs=problem.lobe_probs, connection=problem.connection)
 
 
 @eqx.filter_jit

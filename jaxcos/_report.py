@@ -40,6 +40,12 @@ def _fmt(v):
     return f"{float(v):.4g}"
 
 
+def _mirror_label(result):
+    """The third fixed start's entry in the starts table: only where the highlight was narrow."""
+    return ", 2 = near-mirror platelets at the highlight's tilt" if any(
+        str(s[0]).startswith("near-mirror") for s in result.starts) else ""
+
+
 def _budget_name(record):
     from ._walk import BUDGETS
 
@@ -138,8 +144,8 @@ def fit_report(result, meas):
         "within 1% of the best's on the best start's objective: final losses are not comparable across starts, "
         "whose weights and lobe probabilities are set where each pass begins):",
         "",
-        "| start (0 = default, 1 = broad tilted platelets; screened unless said) | final loss | material chi-square under independent keys "
-        "(see Check) |",
+        f"| start (0 = default, 1 = broad tilted platelets{_mirror_label(result)}; screened unless said) | final loss "
+        "| material chi-square under independent keys (see Check) |",
         "|---|---|---|",
     ] + [f"| {i} | {loss:.6g} | {chi2:.6g} +- {se:.2g} |" for i, loss, chi2, se in result.starts]
     lines += _check_section(r) + [
@@ -151,6 +157,11 @@ def fit_report(result, meas):
         "Energy left in unfinished walks: at most "
         f"{r['unfinished_energy']:.2g} of the incident energy.",
     ]
+    if r.get("connection") == "mis":
+        lines.append("The measured highlight is narrower than the angular sampling (near-mirror platelets): each "
+                     "scattering vertex connects to the viewer both by next-event estimation and by a flight drawn "
+                     "back through the platelet lobe, weighted by multiple importance sampling "
+                     "(`simulate(connection=\"mis\")`), which keeps rare walks from dominating the estimate.")
     if meas.std is not None:
         lines.append(f"Median Monte Carlo standard error of the model relative to the measurement std: "
                      f"{r['mc_error_median']:.2f}; the fit weights each residual by the two combined.")

@@ -36,6 +36,9 @@ Cost: every step evaluates the phase functions of all the lobes present (a
 vectorised walk samples every lobe and selects), and ``walks x J`` NEE
 connections; the structure of the :class:`~jaxcos.Material` (variant, layer
 count, base) is static, so a variant's program contains only its own lobes.
+With ``simulate(connection="mis")`` every step also makes one backward
+connection per walk (:func:`_backward_connection`), about half as costly as
+the rest of the step.
 """
 
 import equinox as eqx
@@ -396,14 +399,14 @@ def lobe_probabilities(material):
 
 
 def _scatter(med, q, w, u_lobe, u1, s, ref=None):
-    """Sample a new direction from the lobe mixture with probabilities ``q``; return it and ``W / pdf_mix`` (RGB).
+    """Sample a new direction from the lobe mixture with probabilities ``q``; return it, ``W / pdf_mix`` (RGB) and ``pdf_mix``.
 
     ``q``: ``(..., 3)`` probabilities of (HG ``g1``, HG ``g2``, platelets),
     zero for the lobes the variant lacks. ``ref``: the layer whose lobes draw
     the direction and make up ``pdf_mix`` (held fixed: detached sampling);
     by default ``med``'s own (reparameterized: attached sampling).
     """
-    q1, q2, qp = q[..., 0], q[..., 1], q[..., 2]
+    q1, q2 = q[..., 0], q[..., 1]
     smp = med if ref is None else ref
     candidates = []
     if med.diffusers:
@@ -415,6 +418,17 @@ def _scatter(med, q, w, u_lobe, u1, s, ref=None):
         w_new = candidates[0]
     else:
         w_new = jnp.where((u_lobe >= q1 + q2)[..., None], candidates[1], candidates[0])
+    value, pdf = _mixture(med, q, w, w_new, ref)
+    return w_new, value / pdf[..., None], pdf
+
+
+def _mixture(med, q, w, w_new, ref=None):
+    """``W(w -> w')`` (RGB, 1/sr) and the lobe mixture's density ``pdf_mix(w')`` (1/sr, floored at 1e-30).
+
+    ``q`` and ``ref`` as in :func:`_scatter`: the density is that of the
+    lobes of ``ref`` (detached) or of ``med`` (attached).
+    """
+    q1, q2, qp = q[..., 0], q[..., 1], q[..., 2]
     pdf = 0.0
     f_1 = f_2 = None
     if med.diffusers:
@@ -432,14 +446,51 @@ def _scatter(med, q, w, u_lobe, u1, s, ref=None):
         else:
             pdf = pdf + qp * P.flake_reflection(w, w_new, ref.m, ref.alpha_p) / P.sggx_sigma(w, ref.m, ref.alpha_p)
     f_d = f_1 if f_2 is None else med.w_g * f_1 + (1.0 - med.w_g) * f_2
-    weight = _combine((f_d, f_p), med.prefactors(med.sigma_t(w, sig_s))) / jnp.maximum(pdf, 1e-30)[..., None]
-    return w_new, weight
+    return _combine((f_d, f_p), med.prefactors(med.sigma_t(w, sig_s))), jnp.maximum(pdf, 1e-30)
 
 
-def _nee(med, lay, z, w, beta, wo, rate_o, inv_mu_o, sig_o):
+def _backward_pdf(smp, w, wo):
+    """Density (1/sr) of ``w`` drawn backwards through the platelet lobe from ``wo``: ``f_p(-wo -> -w)``.
+
+    ``= D(h) / (4 sigma_S(wo))`` with the half vector ``h`` of ``w -> wo``;
+    ``smp``: the layer whose platelet lobe draws ``w``.
+    """
+    return P.flake_reflection(w, wo, smp.m, smp.alpha_p) / P.sggx_sigma(wo, smp.m, smp.alpha_p)
+
+
+def _backward_connection(med, lambertian, lay, smp, q, z, k, w, beta, wo, u, n_out, rate_o, inv_mu_o, sig_o, ref):
+    """The second connection strategy: a flight drawn towards ``wo`` through the platelet lobe; RGB ``(W, 3)``.
+
+    From a medium vertex at depth ``z`` (layer ``k``, incoming ``w``,
+    throughput ``beta``), draw ``w'`` by :func:`_backward_pdf` (the platelet
+    lobe of ``smp`` reversed from ``wo``), fly along it to a vertex ``z'``
+    and connect that vertex's platelet reflection to ``wo``. The value is the
+    path's contribution over ``pdf_mix(w') + pdf_b(w') / n_out``: the balance
+    heuristic against next-event estimation at ``z'`` (which drew ``w'``
+    from the mixture), with ``wo`` one of ``n_out`` directions chosen
+    uniformly. ``wo``: ``(W, 3)``, and ``rate_o``, ``inv_mu_o``, ``sig_o``
+    its per-walk terms. ``u``: ``(W, 4)`` uniforms.
+    """
+    w_b = -P.sggx_sample(-wo, smp.m, smp.alpha_p, P.uniform_sphere(u[:, 0], u[:, 1]))
+    value, pdf = _mixture(lay, q, w, w_b, ref)
+    pdf = pdf + _backward_pdf(smp, w_b, wo) / n_out
+    z2, k2, beta2, base2, _, _ = _flight(med, lambertian, z, k, w_b, beta * value, u[:, 2], u[:, 3])
+    far = med.take(k2)
+    if med.n_layers == 1:
+        tau = z2 * rate_o
+    else:
+        tau = med.depth_optical(sig_o, z2) * inv_mu_o
+    k_p = far.prefactors(far.sigma_t(w_b))[1]
+    out = P.flake_reflection(w_b, wo, far.m, far.alpha_p) * jnp.exp(-tau) * inv_mu_o / pdf
+    out = beta2 * k_p * out[:, None]
+    return jnp.where(base2[:, None], 0.0, out) if lambertian else out
+
+
+def _nee(med, lay, z, w, beta, wo, rate_o, inv_mu_o, sig_o, mis=None):
     """Connection of medium vertices to every outgoing direction, times throughput: ``(W, J, 3)``.
 
-    ``beta * W(w -> wo) * exp(-tau(z, wo)) / mu_o``. ``lay``: the vertex
+    ``beta * W(w -> wo) * exp(-tau(z, wo)) / mu_o``, the platelet part of
+    ``W`` multiplied by ``mis(D(h) / 4)`` ``(W, J)`` when given. ``lay``: the vertex
     layer's parameters (per walk); ``rate_o``: ``sigma_t(wo) / mu_o`` of a
     single layer, ``(J,)``; ``sig_o``: ``(J, L)`` extinctions along ``wo``
     (stacks). The RGB factors are formed per walk, the lobes per pair.
@@ -452,19 +503,30 @@ def _nee(med, lay, z, w, beta, wo, rate_o, inv_mu_o, sig_o):
     factors = [None if k is None else beta * k for k in lay.prefactors(lay.sigma_t(w))]
     if med.n_layers > 1:  # per-walk parameters gain the axis of wo
         lay = jax.tree.map(lambda a: a[:, None], lay)
-    lobes = lay.lobes(w[:, None, :], wo[None, :, :])
-    return _combine([None if f is None else f * atten for f in lobes], [None if k is None else k[:, None, :] for k in factors])
+    f_d, f_p = lay.lobes(w[:, None, :], wo[None, :, :])
+    if mis is not None:
+        f_p = f_p * mis(f_p)
+    return _combine([None if f is None else f * atten for f in (f_d, f_p)],
+                    [None if k is None else k[:, None, :] for k in factors])
 
 
-def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref=None):
-    """All walks of one incidence: per-walk NEE sums ``(W, J, 3)`` and energy tallies ``(W, 3)``."""
+def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref=None, mis=False):
+    """All walks of one incidence: per-walk connection sums ``(W, J, 3)`` and energy tallies ``(W, 3)``.
+
+    With platelets and ``mis``, every medium vertex also makes one
+    :func:`_backward_connection` (to one ``wo`` per step, cycling through them
+    from a random offset), and next-event estimation's platelet part at a
+    vertex whose incoming direction the mixture drew is weighted against it.
+    """
     dtype = wi.dtype
+    n_out = wo.shape[0]
     mu_o = jnp.maximum(wo[:, 2], _MIN_MU)
     inv_mu_o = 1.0 / mu_o
     sig_o = _sigma_layers(med, wo)  # (J, L)
     rate_o = sig_o[:, 0] * inv_mu_o
     total_t = jnp.sum(med.t)
     lambertian = base_albedo is not None
+    mis = mis and med.platelets
     if lambertian:
         base_nee = (base_albedo / jnp.pi)[None, :] * jnp.exp(-med.depth_optical(sig_o, total_t) / mu_o)[:, None]
     state = dict(
@@ -476,29 +538,79 @@ def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref
         escaped=jnp.zeros((walks, 3), dtype),
         into_base=jnp.zeros((walks, 3), dtype),
     )
+    if mis:
+        # The second strategy's numbers: a stream of its own (the hash's input as if the counters had
+        # their top bit set, which the walks' never reach), so the walks are those of mis=False. The
+        # offsets use a step number the walks never reach either.
+        seed_b = seed ^ jnp.array([0x80000000, 0], jnp.uint32)
+        offset = _uniforms(seed_b, jnp.uint32(0xFFFFFFFF), walks, 1, dtype)[:, 0]
+        offset = jnp.minimum(jnp.floor(offset * n_out).astype(jnp.int32), n_out - 1)
+        # 1 / the mixture density that drew the incoming direction (0: the mixture did not draw it)
+        state.update(inv_pdf=jnp.zeros(walks, dtype))
+        if med.n_layers > 1:  # and the layer whose lobes drew it
+            state.update(k_src=jnp.zeros(walks, jnp.int32))
+    sampler = med if ref is None else ref
+    per_pair = lambda lay: jax.tree.map(lambda a: a[:, None], lay)
+    if mis and med.n_layers == 1:
+        inv_sig_b = 1.0 / (P.sggx_sigma(wo, sampler.m[0], sampler.alpha_p[0]) * n_out)  # (J,)
 
     def step(s, i):
         u = _uniforms(seed, i, walks, 6, dtype)
         sphere = P.uniform_sphere(u[:, 4], u[:, 5])
         z, k, beta, base, escaped, into_base = _flight(med, lambertian, s["z"], s["k"], s["w"], s["beta"], u[:, 0], u[:, 1])
         lay = med.take(k)
-        contrib = _nee(med, lay, z, s["w"], beta, wo, rate_o, inv_mu_o, sig_o)
+        def nee_weight(f_p):
+            """The balance heuristic's weight of NEE's platelet part, given its ``D(h) / 4``."""
+            if med.n_layers > 1:
+                p_b = _backward_pdf(per_pair(sampler.take(s["k_src"])), s["w"][:, None, :], wo[None]) / n_out
+            elif ref is None:  # the lobe that would have drawn w backwards is this vertex's
+                p_b = f_p * inv_sig_b
+            else:
+                p_b = P.flake_reflection(s["w"][:, None, :], wo[None], ref.m[0], ref.alpha_p[0]) * inv_sig_b
+            return 1.0 / (1.0 + p_b * s["inv_pdf"][:, None])
+
+        contrib = _nee(med, lay, z, s["w"], beta, wo, rate_o, inv_mu_o, sig_o, nee_weight if mis else None)
         if lambertian:
             contrib = jnp.where(base[:, None, None], beta[:, None, :] * base_nee[None], contrib)
         count = jnp.where(jnp.logical_and(skip_first, i == 0), 0.0, 1.0).astype(dtype)
         acc = s["acc"] + count * contrib
-        w_new, weight = _scatter(lay, q[0] if med.n_layers == 1 else q[k], s["w"], u[:, 2], u[:, 3], sphere,
-                                 None if ref is None else ref.take(k))
+        q_k = q[0] if med.n_layers == 1 else q[k]
+        ref_k = None if ref is None else ref.take(k)
+        w_new, weight, pdf = _scatter(lay, q_k, s["w"], u[:, 2], u[:, 3], sphere, ref_k)
+        new = {}
+        if mis:
+            # The backward strategy makes the next vertex: none from the last step, so that both
+            # strategies cover the same scattering orders.
+            j = (offset + i) % n_out  # the same slot as after the scan
+            b = _backward_connection(med, lambertian, lay, lay if ref is None else ref_k, q_k, z, k, s["w"], beta,
+                                     wo[j], _uniforms(seed_b, i, walks, 4, dtype), n_out, rate_o[j], inv_mu_o[j],
+                                     sig_o[j], ref_k)
+            keep = i < bounces - 1
+            if lambertian:
+                keep = jnp.logical_and(keep, ~base)
+            b = jnp.where(keep[..., None], b, 0.0)
+            new = dict(inv_pdf=jnp.where(base, 0.0, 1.0 / pdf) if lambertian else 1.0 / pdf)
+            if med.n_layers > 1:
+                new.update(k_src=k)
         if lambertian:
             up = P.cosine_sample(jnp.array([0.0, 0.0, 1.0], dtype), sphere)
             w_new = jnp.where(base[:, None], up, w_new)
             weight = jnp.where(base[:, None], base_albedo, weight)
         s = dict(z=z, k=k, w=w_new, beta=beta * weight, acc=acc,
-                 escaped=s["escaped"] + escaped, into_base=s["into_base"] + into_base)
-        return s, None
+                 escaped=s["escaped"] + escaped, into_base=s["into_base"] + into_base, **new)
+        return s, (b if mis else None)
 
-    state, _ = jax.lax.scan(step, state, jnp.arange(bounces))
-    return state["acc"], state["escaped"], state["into_base"], state["beta"]
+    state, backward = jax.lax.scan(step, state, jnp.arange(bounces))
+    acc = state["acc"]
+    if mis:
+        # Each step's backward connection (W, 3) joins its wo after the walk: step i's goes to
+        # slot (offset + i) % J. Summed by the phase i % J, then rotated by each walk's offset.
+        cycles = -(-bounces // n_out)
+        backward = jnp.pad(backward, ((0, cycles * n_out - bounces), (0, 0), (0, 0)))
+        by_phase = jnp.moveaxis(backward.reshape(cycles, n_out, walks, 3).sum(0), 0, 1)  # (W, J, 3)
+        phase = (jnp.arange(n_out)[None, :] - offset[:, None]) % n_out  # (W, J): the phase of slot j
+        acc = acc + jnp.take_along_axis(by_phase, phase[..., None], axis=1)
+    return acc, state["escaped"], state["into_base"], state["beta"]
 
 
 # --- the exact single-scattering term ------------------------------------------------
@@ -553,7 +665,7 @@ class Estimate(eqx.Module):
 
 @eqx.filter_jit
 def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNCES, single_scattering="exact",
-             lobe_probs=None, incidence_batch=None, sampling=None):
+             lobe_probs=None, incidence_batch=None, sampling=None, connection="nee"):
     """Estimate the BSDF of ``material`` for a :class:`Query`.
 
     Args:
@@ -585,12 +697,26 @@ def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNC
             ``g1``, ``g2``, ``alpha_p``, ``theta_p`` and ``phi_p``
             (``docs/derivatives.md``). Same variant and layer count as
             ``material``.
+        connection: how scattering vertices connect to the viewer. ``"nee"``
+            (the default, the paper's estimator): next-event estimation
+            alone. Near-mirror platelets (``alpha_p`` ~ 0.002) give it rare
+            spikes of about ``1 / alpha_p^2`` wherever a diffuse bounce lands
+            in the platelets' mirror lobe. ``"mis"`` adds, where the material
+            has platelets, a second strategy for the platelets' part: from
+            every vertex a flight drawn backwards through the platelet lobe
+            from one ``wo`` (:func:`_backward_connection`), the two weighted by
+            multiple importance sampling (the balance heuristic). On dewy2 it
+            takes the largest relative standard error over the measured
+            points from 0.28 to 0.07 (1024 walks) for about 1.5 times the
+            cost of an evaluation. Both are unbiased and draw the same walks.
 
     Returns:
         An :class:`Estimate`.
     """
     if single_scattering not in ("exact", "mc"):
         raise ValueError(f"single_scattering must be 'exact' or 'mc', not {single_scattering!r}")
+    if connection not in ("mis", "nee"):
+        raise ValueError(f"connection must be 'mis' or 'nee', not {connection!r}")
     med = _medium(material)
     q = lobe_probabilities(material) if lobe_probs is None else jax.lax.stop_gradient(jnp.asarray(lobe_probs))
     exact = single_scattering == "exact"
@@ -599,7 +725,8 @@ def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNC
     if ref is not None and (ref.diffusers, ref.platelets, ref.two_lobes, ref.n_layers) != (
             med.diffusers, med.platelets, med.two_lobes, med.n_layers):
         raise ValueError("sampling must have the variant and the number of layers of material.")
-    walk = lambda wi, wo, k: _walk_one(med, material.base_albedo, q, wi, wo, k, walks, bounces, exact, ref)
+    walk = lambda wi, wo, k: _walk_one(med, material.base_albedo, q, wi, wo, k, walks, bounces, exact, ref,
+                                       connection == "mis")
     if incidence_batch is None or incidence_batch >= query.wi.shape[0]:
         acc, escaped, into_base, unfinished = jax.vmap(walk)(query.wi, query.wo, seeds)
     else:
@@ -620,7 +747,7 @@ def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNC
 
 
 def inplane_bsdf(material, theta_i_deg, theta_o_deg, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNCES,
-                 phi_o_deg=None, single_scattering="exact"):
+                 phi_o_deg=None, single_scattering="exact", connection="nee"):
     """The BSDF ``f(wi, wo)`` in 1/sr, linear RGB, shape ``(N, 3)``, at ``N`` angle pairs.
 
     Angles in degrees, gonioreflectometer convention (MODEL.md section 1):
@@ -636,4 +763,5 @@ def inplane_bsdf(material, theta_i_deg, theta_o_deg, key, *, walks=DEFAULT_WALKS
         (1, 3)
     """
     query = make_query(theta_i_deg, theta_o_deg, phi_o_deg)
-    return simulate(material, query, key, walks=walks, bounces=bounces, single_scattering=single_scattering).f
+    return simulate(material, query, key, walks=walks, bounces=bounces, single_scattering=single_scattering,
+                    connection=connection).f

@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -13,7 +14,8 @@ import jaxcos
 from jaxcos._cli import main
 import optimistix as optx
 
-from jaxcos._fit import LevenbergMarquardt, check, fit, highlight_tilt, make_problem, parameterization, random_starts
+from jaxcos._fit import (LevenbergMarquardt, check, fit, highlight_tilt, make_problem, narrow_highlight,
+                         parameterization, random_starts)
 from jaxcos._errors import InputError
 from jaxcos._measurements import Measurements
 
@@ -287,6 +289,22 @@ def test_highlight_tilt_finds_a_near_mirror_highlight():
     off_plane = Measurements(theta_i=ti, theta_o=to, phi_o=np.full_like(ti, 90.0), values=values, std=None,
                              quantity="reflectance_factor", metadata={}, path="mirror.csv")
     assert highlight_tilt(off_plane) is None
+    # one point wide at a 4-degree step: narrower than the sampling, so the fit's objective connects by MIS
+    assert narrow_highlight(meas) and not narrow_highlight(off_plane)
+    assert make_problem(meas, parameterization("two_lobe"), key=jax.random.key(0), walks=8, bounces=8).connection == "mis"
+    broad = dataclasses.replace(mirror.layers[0], alpha_p=0.3)
+    est = jaxcos.simulate(jaxcos.Material(layers=(broad,)), jaxcos.make_query(ti, to), jax.random.key(0), walks=256,
+                          bounces=8)
+    meas = dataclasses.replace(meas, values=np.pi * np.asarray(est.f, float))
+    assert not narrow_highlight(meas)
+    assert make_problem(meas, parameterization("two_lobe"), key=jax.random.key(0), walks=8, bounces=8).connection == "nee"
+
+
+@pytest.mark.parametrize("name, narrow", [("dewy1", False), ("dewy2", True), ("matte1", False), ("matte2", False)])
+def test_narrow_highlight_of_the_bundled_sets(name, narrow):
+    """Only dewy2 (``alpha_p = 0.002``) has a highlight narrower than its 1-degree viewing step."""
+    meas = jaxcos.load_measurements(os.path.join(os.path.dirname(__file__), "..", "measurements", f"{name}.csv"))
+    assert narrow_highlight(meas) == narrow
 
 
 def test_parameterization_round_trip():

@@ -80,14 +80,14 @@ CHUNK = 512  # every call gets this batch size, so each program compiles once
 
 
 @functools.lru_cache(maxsize=None)
-def _batched(lambertian, detached):
+def _batched(lambertian, detached, connection="nee"):
     """``jit(vmap)`` of (f, stderr, df) at parameters ``v``, tangent ``dv``, lobe probabilities, key and
     (``detached``) the parameters ``ref`` of the material whose lobes draw the directions."""
 
     def one(v, dv, lp, key, ref):
         def est(v):
             e = jaxcos.simulate(_material(v, lambertian), QUERY, key, walks=WALKS, bounces=BOUNCES, lobe_probs=lp,
-                                sampling=_material(ref, lambertian) if detached else None)
+                                sampling=_material(ref, lambertian) if detached else None, connection=connection)
             return e.f, e.stderr
 
         (f, se), (df, _) = jax.jvp(est, (v,), (dv,))
@@ -96,7 +96,7 @@ def _batched(lambertian, detached):
     return jax.jit(jax.vmap(one))
 
 
-def _run(lambertian, v, dv, lp, keys, ref=None):
+def _run(lambertian, v, dv, lp, keys, ref=None, connection="nee"):
     """Evaluate a batch of any size in padded chunks of ``CHUNK``: (f, stderr, df), each ``(n, 6, 3)``.
 
     ``ref``: per row, the parameters of a fixed material whose lobes draw the directions (detached
@@ -108,7 +108,7 @@ def _run(lambertian, v, dv, lp, keys, ref=None):
     out = []
     for a in range(0, n, CHUNK):
         idx = np.minimum(np.arange(a, a + CHUNK), n - 1)
-        res = _batched(lambertian, detached)(v[idx], dv[idx], lp[idx], keys[jnp.asarray(idx)], ref[idx])
+        res = _batched(lambertian, detached, connection)(v[idx], dv[idx], lp[idx], keys[jnp.asarray(idx)], ref[idx])
         out.append([np.asarray(r)[: min(CHUNK, n - a)] for r in res])
     return tuple(np.concatenate([o[i] for o in out]) for i in range(3))
 
@@ -128,15 +128,16 @@ HARD_WALKS, HARD_BOUNCES = 8, 16
 WEIGHTS = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (len(HARD_TI), 3)), jnp.result_type(float))
 
 
-def _bsdf(m, key):
-    return jaxcos.inplane_bsdf(m, HARD_TI, HARD_TO, key, walks=HARD_WALKS, bounces=HARD_BOUNCES)
+def _bsdf(m, key, connection="nee"):
+    return jaxcos.inplane_bsdf(m, HARD_TI, HARD_TO, key, walks=HARD_WALKS, bounces=HARD_BOUNCES, connection=connection)
 
 
 @functools.lru_cache(maxsize=None)
-def _value_and_jacobian(variant, lambertian):
-    """Compiled ``(f, jax.jacfwd(f))`` for one structure; variant and base decide the program."""
+def _value_and_jacobian(variant, lambertian, connection="nee"):
+    """Compiled ``(f, jax.jacfwd(f))`` for one structure; variant, base and connection decide the program."""
     del variant, lambertian  # the cache key: one compiled program per structure
-    return eqx.filter_jit(lambda m, key: (_bsdf(m, key), jax.jacfwd(_bsdf)(m, key)))
+    bsdf = lambda m, key: _bsdf(m, key, connection)
+    return eqx.filter_jit(lambda m, key: (bsdf(m, key), jax.jacfwd(bsdf)(m, key)))
 
 
 def _generic():
@@ -151,7 +152,7 @@ def test_grad_jvp_jacfwd_agree():
     m, key = _generic(), jax.random.key(11)
     scalar = lambda m, key: jnp.sum(WEIGHTS * _bsdf(m, key))
     grad = eqx.filter_jit(jax.grad(scalar))(m, key)
-    f, jac = _value_and_jacobian("two_lobe", True)(m, key)
+    f, jac = _value_and_jacobian("two_lobe", True, "nee")(m, key)
     from_jac = jax.tree.map(lambda j: jnp.tensordot(WEIGHTS, j, axes=2), jac)
     flat, unravel = ravel_pytree(m)
     jvp = eqx.filter_jit(lambda m, tangent, key: jax.jvp(lambda mm: scalar(mm, key), (m,), (tangent,))[1])
@@ -223,10 +224,13 @@ UNBIASED_CASES = {
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case, detached", [(c, False) for c in UNBIASED_CASES] + [("dewy1", True), ("matte2", True)])
-def test_gradient_unbiased(case, detached):
+@pytest.mark.parametrize("case, detached, connection", [(c, False, "nee") for c in UNBIASED_CASES]
+                         + [("dewy1", True, "nee"), ("matte2", True, "nee"), ("dewy1", False, "mis"),
+                            ("matte2", True, "mis")])
+def test_gradient_unbiased(case, detached, connection):
     """Mean AD derivative over many keys against a central difference; ``detached``: directions drawn
-    from the unperturbed material's lobes on both sides (``simulate(sampling=...)``), as in a fit."""
+    from the unperturbed material's lobes on both sides (``simulate(sampling=...)``), as in a fit;
+    ``connection``: the estimator's (``"mis"``: its second strategy and weights are differentiated too)."""
     material, params = UNBIASED_CASES[case]
     lambertian = material.base_albedo is not None
     v0 = _vec(material)
@@ -244,7 +248,7 @@ def test_gradient_unbiased(case, detached):
         k = len(keys)
         dv = np.concatenate([np.repeat(eye[IDX[n]][None], k, 0) for n in params])
         _, _, df = _run(lambertian, np.repeat(v0[None], p * k, 0), dv, np.repeat(lp[None], p * k, 0),
-                        jnp.concatenate([keys] * p), ref(p * k))
+                        jnp.concatenate([keys] * p), ref(p * k), connection)
         return df.sum(axis=(1, 2)).reshape(p, k)
 
     ad, ad_paired = ad_at(keys_ad), ad_at(keys_fd[:K_AD])
@@ -258,7 +262,7 @@ def test_gradient_unbiased(case, detached):
             v += [np.repeat((v0 + sign * h * eye[IDX[n]])[None], len(keys), 0) for sign in (1, -1)]
         v = np.concatenate(v)
         f, _, _ = _run(lambertian, v, np.zeros_like(v), np.repeat(lp[None], len(v), 0),
-                       jnp.concatenate([keys] * (2 * p)), ref(len(v)))
+                       jnp.concatenate([keys] * (2 * p)), ref(len(v)), connection)
         s_ = f.sum(axis=(1, 2)).reshape(p, 2, len(keys))
         return (s_[:, 0] - s_[:, 1]) / (2 * mult * np.array([_step(n, v0) for n in params]))[:, None]
 
@@ -284,7 +288,7 @@ def test_gradient_unbiased(case, detached):
             failures.append(f"{n}: z = {z:+.2f}")
         if not trunc < 0.5 * se + 3.0 * trunc_se:
             failures.append(f"{n}: FD truncation {trunc:.3g} not negligible against SE {se:.3g}")
-    print(f"\n[unbiased] {case}{' (detached directions)' * detached}: mean AD gradient vs central FD "
+    print(f"\n[unbiased] {case}{' (detached directions)' * detached}, {connection}: mean AD gradient vs central FD "
           f"(K_AD={K_AD}, K_FD={K_FD}, walks={WALKS})")
     print("\n".join(rows))
     # 3 SE per comparison (the requirement); with the 43 comparisons of the five cases a Sidak
@@ -496,13 +500,14 @@ def _hard_material(values, variant, lambertian):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("variant", jaxcos.VARIANTS)
-def test_finite_everywhere(variant):
+@pytest.mark.parametrize("variant, connection", [(v, "nee") for v in jaxcos.VARIANTS]
+                         + [("two_lobe", "mis"), ("platelets_only", "mis")])
+def test_finite_everywhere(variant, connection):
     """No NaN or inf in the BSDF or in ``jax.jacfwd`` over all leaves, at every hard case."""
     key = jax.random.key(5)
     problems = []
     for lambertian in (False, True):
-        fn = _value_and_jacobian(variant, lambertian)
+        fn = _value_and_jacobian(variant, lambertian, connection)
         for values in HARD_VALUES:
             f, jac = fn(_hard_material(values, variant, lambertian), key)
             flat = np.asarray(ravel_pytree(jac)[0])
