@@ -330,8 +330,8 @@ def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe
     estimation through the near-mirror lobe is so spiky that under a fixed
     key at the fit's budget the truth is not a minimum of the objective
     (dewy2: its loss 912.7 against 275.9 at a wrong material; ``"mis"``
-    removes the spikes at 1.4 times the cost of an evaluation, and is not
-    spent where the highlight is broad).
+    removes the spikes at about 1.5 times the cost of an evaluation, and is
+    not spent where the highlight is broad).
     """
     if connection is None:
         connection = "mis" if narrow_highlight(meas) else "nee"
@@ -782,15 +782,16 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
             one where broad, tilted platelets dominate (``_PLATELET_START``),
             where the highlight is narrower than the angular sampling
             (:func:`narrow_highlight`) a fixed one of sparse near-mirror
-            platelets at its tilt (``_MIRROR_START``), the others random; a third of the random ones start at the tilt of
+            platelets at its tilt (``_MIRROR_START``), the others random; a
+            third of the random ones start at the tilt of
             the measured highlight with a narrow ``alpha_p``
             (:func:`highlight_tilt`). The screen ranks its ends by the pair
             estimate of their chi-square (:func:`_pair_chi2`) over
             :data:`CHECK_BATCHES` independent batches, plus twice its SE.
         refine: number of best screened starts refined at the full budget
             (:data:`PASSES` passes each), besides the default start as it is
-            (the near-mirror start where the highlight is narrow)
-            (the screen's small budget can lead it astray); each is then
+            (the near-mirror start where the highlight is narrow; the
+            screen's small budget can lead it astray); each is then
             checked with :data:`CHECK_FACTOR` times the walks under
             independent keys (:func:`check`), and the best check is the fit
             (the rule is at :data:`CHECK_FACTOR`).

@@ -399,7 +399,7 @@ def lobe_probabilities(material):
 
 
 def _scatter(med, q, w, u_lobe, u1, s, ref=None):
-    """Sample a new direction from the lobe mixture with probabilities ``q``; return it, ``W / pdf_mix`` (RGB) and ``pdf_mix``.
+    """A new direction from the lobe mixture with probabilities ``q``, ``W / pdf_mix`` (RGB) and ``pdf_mix``.
 
     ``q``: ``(..., 3)`` probabilities of (HG ``g1``, HG ``g2``, platelets),
     zero for the lobes the variant lacks. ``ref``: the layer whose lobes draw

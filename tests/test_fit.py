@@ -291,13 +291,15 @@ def test_highlight_tilt_finds_a_near_mirror_highlight():
     assert highlight_tilt(off_plane) is None
     # one point wide at a 4-degree step: narrower than the sampling, so the fit's objective connects by MIS
     assert narrow_highlight(meas) and not narrow_highlight(off_plane)
-    assert make_problem(meas, parameterization("two_lobe"), key=jax.random.key(0), walks=8, bounces=8).connection == "mis"
+    connection = lambda m: make_problem(m, parameterization("two_lobe"), key=jax.random.key(0), walks=8,
+                                        bounces=8).connection
+    assert connection(meas) == "mis"
     broad = dataclasses.replace(mirror.layers[0], alpha_p=0.3)
     est = jaxcos.simulate(jaxcos.Material(layers=(broad,)), jaxcos.make_query(ti, to), jax.random.key(0), walks=256,
                           bounces=8)
     meas = dataclasses.replace(meas, values=np.pi * np.asarray(est.f, float))
     assert not narrow_highlight(meas)
-    assert make_problem(meas, parameterization("two_lobe"), key=jax.random.key(0), walks=8, bounces=8).connection == "nee"
+    assert connection(meas) == "nee"
 
 
 @pytest.mark.parametrize("name, narrow", [("dewy1", False), ("dewy2", True), ("matte1", False), ("matte2", False)])
