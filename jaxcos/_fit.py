@@ -544,8 +544,7 @@ def _highlights(meas):
         order = np.argsort(to)
         to, v = to[order], values[sel][order]
         k = int(np.argmax(v))
-        neighbours = v[max(k - 1, 0):k + 2]
-        neighbours = np.delete(neighbours, k - max(k - 1, 0))
+        neighbours = np.concatenate([v[max(k - 1, 0):k], v[k + 1:k + 2]])
         out.append((float(ti), float(to[k]), float(v[k] / max(np.max(neighbours), 1e-30))))
     return out
 

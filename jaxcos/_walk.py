@@ -476,14 +476,27 @@ def _backward_connection(med, lambertian, lay, smp, q, z, k, w, beta, wo, u, n_o
     pdf = pdf + _backward_pdf(smp, w_b, wo) / n_out
     z2, k2, beta2, base2, _, _ = _flight(med, lambertian, z, k, w_b, beta * value, u[:, 2], u[:, 3])
     far = med.take(k2)
-    if med.n_layers == 1:
-        tau = z2 * rate_o
-    else:
-        tau = med.depth_optical(sig_o, z2) * inv_mu_o
     k_p = far.prefactors(far.sigma_t(w_b))[1]
+    tau = _tau_to_exit(med, z2, rate_o, inv_mu_o, sig_o)
     out = P.flake_reflection(w_b, wo, far.m, far.alpha_p) * jnp.exp(-tau) * inv_mu_o / pdf
     out = beta2 * k_p * out[:, None]
     return jnp.where(base2[:, None], 0.0, out) if lambertian else out
+
+
+def _tau_to_exit(med, z, rate_o, inv_mu_o, sig_o):
+    """``tau(z, wo)``: the optical depth from a vertex at depth ``z`` to the top along ``wo``.
+
+    ``rate_o``: ``sigma_t(wo) / mu_o`` of a single layer; ``sig_o``: ``(..., L)``
+    extinctions along ``wo`` (stacks); all broadcast against ``z``.
+    """
+    if med.n_layers == 1:
+        return z * rate_o
+    return med.depth_optical(sig_o, z) * inv_mu_o
+
+
+def _per_pair(lay):
+    """Per-walk layer parameters ``(W,)`` given the axis of ``wo``: ``(W, 1)``."""
+    return jax.tree.map(lambda a: a[:, None], lay)
 
 
 def _nee(med, lay, z, w, beta, wo, rate_o, inv_mu_o, sig_o, mis=None):
@@ -495,14 +508,10 @@ def _nee(med, lay, z, w, beta, wo, rate_o, inv_mu_o, sig_o, mis=None):
     single layer, ``(J,)``; ``sig_o``: ``(J, L)`` extinctions along ``wo``
     (stacks). The RGB factors are formed per walk, the lobes per pair.
     """
-    if med.n_layers == 1:
-        tau = z[:, None] * rate_o
-    else:
-        tau = med.depth_optical(sig_o, z[:, None]) * inv_mu_o
-    atten = jnp.exp(-tau) * inv_mu_o  # (W, J)
+    atten = jnp.exp(-_tau_to_exit(med, z[:, None], rate_o, inv_mu_o, sig_o)) * inv_mu_o  # (W, J)
     factors = [None if k is None else beta * k for k in lay.prefactors(lay.sigma_t(w))]
     if med.n_layers > 1:  # per-walk parameters gain the axis of wo
-        lay = jax.tree.map(lambda a: a[:, None], lay)
+        lay = _per_pair(lay)
     f_d, f_p = lay.lobes(w[:, None, :], wo[None, :, :])
     if mis is not None:
         f_p = f_p * mis(f_p)
@@ -550,7 +559,6 @@ def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref
         if med.n_layers > 1:  # and the layer whose lobes drew it
             state.update(k_src=jnp.zeros(walks, jnp.int32))
     sampler = med if ref is None else ref
-    per_pair = lambda lay: jax.tree.map(lambda a: a[:, None], lay)
     if mis and med.n_layers == 1:
         inv_sig_b = 1.0 / (P.sggx_sigma(wo, sampler.m[0], sampler.alpha_p[0]) * n_out)  # (J,)
 
@@ -562,7 +570,7 @@ def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref
         def nee_weight(f_p):
             """The balance heuristic's weight of NEE's platelet part, given its ``D(h) / 4``."""
             if med.n_layers > 1:
-                p_b = _backward_pdf(per_pair(sampler.take(s["k_src"])), s["w"][:, None, :], wo[None]) / n_out
+                p_b = _backward_pdf(_per_pair(sampler.take(s["k_src"])), s["w"][:, None, :], wo[None]) / n_out
             elif ref is None:  # the lobe that would have drawn w backwards is this vertex's
                 p_b = f_p * inv_sig_b
             else:

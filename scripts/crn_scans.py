@@ -121,7 +121,8 @@ def scans(walks, points):
                     dv = np.zeros_like(v)
                     dv[IDX[name]] = xi if log else 1.0
                     v_all.append(v), dv_all.append(dv), ref_all.append(v0)
-                    lp_all.append(np.asarray(jaxcos.lobe_probabilities(_material(jnp.asarray(v)))) if mode == "recomputed" else lp0)
+                    lp_all.append(np.asarray(jaxcos.lobe_probabilities(_material(jnp.asarray(v))))
+                                  if mode == "recomputed" else lp0)
         f, se, df = _run(_program(walks, mode == "detached"), np.array(v_all), np.array(dv_all),
                          np.array(lp_all, np.float32), np.array(ref_all))
         for i, (product, name, x, s) in enumerate(rows):
