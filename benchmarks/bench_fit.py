@@ -1,8 +1,10 @@
 """Levenberg-Marquardt against the Powell baseline, on the same objective, per bundled data set.
 
-Both methods refine the same start, once from each of the fit's two fixed
-starts (``default`` and the broad, tilted ``platelet`` start; no screening, so
-the comparison is of the local solvers), on the same residuals: the same key,
+Both methods refine the same start, once from each of the fit's fixed starts
+(``default``, the broad, tilted ``platelet`` start and, where the fit adds it
+for a highlight narrower than the angular sampling, the ``near-mirror`` start
+at the highlight's tilt; no screening, so the comparison is of the local
+solvers), on the same residuals: the same key,
 budget, lobe probabilities and weights (those of the full fit's best start).
 Recorded: wall time, forward evaluations (a Jacobian counts as its measured
 cost in forward evaluations at the objective's walks), final loss, the time LM
@@ -25,7 +27,8 @@ import time
 import jax
 
 import jaxcos
-from jaxcos._fit import _DEFAULT, _PLATELET_START, CHECK_FACTOR, check, solve_lm, solve_powell, with_mc_error
+from jaxcos._fit import (_DEFAULT, _MIRROR_START, _PLATELET_START, CHECK_FACTOR, check, highlight_tilt, solve_lm,
+                        solve_powell, with_mc_error)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -63,16 +66,23 @@ def _lm_trace(problem, x0, max_steps=40):
 
 
 STARTS = {"default": _DEFAULT, "platelet": {**_DEFAULT, **_PLATELET_START}}
-"""The fit's two fixed starts (:func:`jaxcos.fit` screens them among its random ones)."""
+"""The fit's two fixed starts for every data set (:func:`jaxcos.fit` screens them among its random ones)."""
+
+
+def _starts(meas, problem):
+    """:data:`STARTS`, and the near-mirror start where the fit adds it (its objective uses the MIS connection)."""
+    if problem.connection != "mis":
+        return STARTS
+    return {**STARTS, "near-mirror": {**_DEFAULT, **_MIRROR_START, "theta_p": highlight_tilt(meas)}}
 
 
 def bench(product, max_powell=4000):
-    """One record per start of :data:`STARTS`, all on the objective of the full fit's best start."""
+    """One record per fixed start of the fit, all on the objective of the full fit's best start."""
     meas = jaxcos.load_measurements(os.path.join(ROOT, "measurements", f"{product}.csv"))
     full, t_full = _time(lambda: jaxcos.fit(meas))
     problem = with_mc_error(full.problem, meas, full.problem.param.from_material(full.material))
     records = []
-    for name, values in STARTS.items():
+    for name, values in _starts(meas, problem).items():
         x0 = full.param.from_material(jaxcos.Material(layers=(jaxcos.Layer(**values),)))
         r = _compare(problem, meas, x0, max_powell)
         records.append(dict(product=product, start=name, n_params=int(problem.param.size),
