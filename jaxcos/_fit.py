@@ -819,14 +819,16 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     problem = make_problem(meas, param, key=key, walks=walks, bounces=bounces, reference=param.to_material(x_default),
                            jacobian_walks=jacobian_walks)
 
+    fixed_names = []  # the screen's fixed starts, by their index in it
     if start is not None:
         candidates = [("given", x_default)]
     else:
         rng = np.random.default_rng(seed)
         tilt = highlight_tilt(meas) if "theta_p" in param.names else None
-        fixed = [x_default]
+        fixed, fixed_names = [x_default], ["default"]
         if starts >= 1:
             fixed.append(param.from_material(Material(layers=(Layer(**{**_DEFAULT, "t": t, **_PLATELET_START}),))))
+            fixed_names.append("broad tilted platelets")
         # The fixed start refined unscreened besides the best screened one: the default, or where the
         # highlight is narrower than the sampling, near-mirror platelets at its tilt. The screen's budget is
         # blind to such a lobe (a quarter of the bounces leave up to 14% of dewy2's energy unfinished):
@@ -836,6 +838,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         if starts >= 2 and tilt is not None and problem.connection == "mis":
             fixed.append(param.from_material(Material(layers=(Layer(**{**_DEFAULT, "t": t, **_MIRROR_START,
                                                                          "theta_p": tilt}),))))
+            fixed_names.append("near-mirror platelets at the highlight's tilt")
             unscreened = ("near-mirror, unscreened", fixed[-1])
         pool = jnp.concatenate([jnp.stack(fixed), random_starts(param, starts + 1 - len(fixed), rng, tilt)])
         screen = dataclasses.replace(problem, walks=max(jacobian_walks // 2, 8), bounces=max(bounces // 4, 16),
@@ -886,7 +889,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         iterations=int(steps), time_s=round(elapsed, 2), method=method, variant=variant,
         n_evaluations=int(round(n_eval)), walks=int(walks), bounces=int(bounces), jacobian_walks=jacobian_walks,
         seed=int(seed), n_params=int(param.size), connection=problem.connection,
-        fitted=list(param.names), starts_refined=len(results), starts_at_optimum=len(same),
+        fitted=list(param.names), fixed_starts=fixed_names, starts_refined=len(results), starts_at_optimum=len(same),
         unfinished_energy=float(np.max(np.asarray(est.unfinished))),
         mc_error_median=float(np.median(model_std / (meas.std if meas.std is not None else 1.0))),
         check=checks[best],

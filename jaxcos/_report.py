@@ -40,10 +40,12 @@ def _fmt(v):
     return f"{float(v):.4g}"
 
 
-def _mirror_label(result):
-    """The third fixed start's entry in the starts table: only where the highlight was narrow."""
-    return ", 2 = near-mirror platelets at the highlight's tilt" if any(
-        str(s[0]).startswith("near-mirror") for s in result.starts) else ""
+def _starts_legend(record):
+    """What the starts table's labels mean: the screen's fixed starts by index (``record["fixed_starts"]``)."""
+    fixed = record["fixed_starts"]
+    if not fixed:
+        return "the given start"
+    return ", ".join(f"{i} = {name}" for i, name in enumerate(fixed)) + "; screened unless said"
 
 
 def _budget_name(record):
@@ -144,7 +146,7 @@ def fit_report(result, meas):
         "within 1% of the best's on the best start's objective: final losses are not comparable across starts, "
         "whose weights and lobe probabilities are set where each pass begins):",
         "",
-        f"| start (0 = default, 1 = broad tilted platelets{_mirror_label(result)}; screened unless said) | final loss "
+        f"| start ({_starts_legend(r)}) | final loss "
         "| material chi-square under independent keys (see Check) |",
         "|---|---|---|",
     ] + [f"| {i} | {loss:.6g} | {chi2:.6g} +- {se:.2g} |" for i, loss, chi2, se in result.starts]

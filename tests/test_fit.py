@@ -362,6 +362,9 @@ def test_cli_fit_reports_its_check(tmp_path, capsys):
     assert record["check"]["chi2"] > record["check"]["chi2_mc"] > 0
     report = (out / "report.md").read_text()
     assert "## Check under independent keys" in report and f"{record['check']['reduced_chi2']:.3f}" in report
+    # the screen's fixed starts, named by their index in the starts table (no near-mirror start: a broad highlight)
+    assert record["fixed_starts"] == ["default", "broad tilted platelets"]
+    assert "| start (0 = default, 1 = broad tilted platelets; screened unless said) |" in report
     assert "under independent keys" in capsys.readouterr().out
     assert main(["fit", str(csv), "--out", str(tmp_path / "g"), "--jacobian-walks", "0"]) == 2
     err = capsys.readouterr().err.strip()
