@@ -357,8 +357,8 @@ def test_cli_fit_reports_its_check(tmp_path, capsys):
                  "--jacobian-walks", "8", "--starts", "2"]) == 0
     record = json.loads((out / "params.json").read_text())["fit"]
     assert record["walks"] == 10 and record["jacobian_walks"] == 8
-    # 4 x 10 walks, rounded up to whole batches of the check
-    assert record["check"]["walks"] == 48 and record["check"]["batches"] == 16
+    # 16 x 10 walks: 16 batches of the fit's own 10 walks
+    assert record["check"]["walks"] == 160 and record["check"]["batches"] == 16
     assert record["check"]["chi2"] > record["check"]["chi2_mc"] > 0
     report = (out / "report.md").read_text()
     assert "## Check under independent keys" in report and f"{record['check']['reduced_chi2']:.3f}" in report
