@@ -27,8 +27,7 @@ import time
 import jax
 
 import jaxcos
-from jaxcos._fit import (_DEFAULT, _MIRROR_START, _PLATELET_START, CHECK_FACTOR, check, highlight_tilt, solve_lm,
-                        solve_powell, with_mc_error)
+from jaxcos._fit import CHECK_FACTOR, check, fixed_starts, highlight_tilt, solve_lm, solve_powell, with_mc_error
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -65,15 +64,10 @@ def _lm_trace(problem, x0, max_steps=40):
     return [(t, loss) for t, loss in trace if loss > 0]
 
 
-STARTS = {"default": _DEFAULT, "platelet": {**_DEFAULT, **_PLATELET_START}}
-"""The fit's two fixed starts for every data set (:func:`jaxcos.fit` screens them among its random ones)."""
-
-
 def _starts(meas, problem):
-    """:data:`STARTS`, and the near-mirror start where the fit adds it (its objective uses the MIS connection)."""
-    if problem.connection != "mis":
-        return STARTS
-    return {**STARTS, "near-mirror": {**_DEFAULT, **_MIRROR_START, "theta_p": highlight_tilt(meas)}}
+    """The fit's fixed starts for ``meas`` (:func:`jaxcos._fit.fixed_starts`): ``{key: Layer values}``."""
+    tilt = highlight_tilt(meas) if "theta_p" in problem.param.names else None
+    return {key: values for key, _, values in fixed_starts(2, 16.0, tilt, problem.connection)}
 
 
 def bench(product, max_powell=4000):

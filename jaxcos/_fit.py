@@ -582,6 +582,25 @@ def narrow_highlight(meas):
     return bool(ratios) and float(np.median(ratios)) > NARROW_RATIO
 
 
+def fixed_starts(starts, t, tilt, connection):
+    """The fit's fixed starts, in the screen's order: ``(key, description, Layer values)``.
+
+    ``"default"`` (:data:`_DEFAULT`); with ``starts >= 1`` ``"platelet"``, broad
+    tilted platelets (``_PLATELET_START``); with ``starts >= 2``, where the
+    objective uses the ``"mis"`` connection (a highlight narrower than the angular
+    sampling, :func:`narrow_highlight`) and the variant has a tilt ``tilt``
+    (:func:`highlight_tilt`), ``"near-mirror"``, sparse near-mirror platelets at
+    that tilt (``_MIRROR_START``). ``t``: the optical thickness of each.
+    """
+    out = [("default", "default", {**_DEFAULT, "t": t})]
+    if starts >= 1:
+        out.append(("platelet", "broad tilted platelets", {**_DEFAULT, "t": t, **_PLATELET_START}))
+    if starts >= 2 and tilt is not None and connection == "mis":
+        out.append(("near-mirror", "near-mirror platelets at the highlight's tilt",
+                    {**_DEFAULT, "t": t, **_MIRROR_START, "theta_p": tilt}))
+    return out
+
+
 def random_starts(param, n, rng, tilt=None):
     """``n`` starting vectors, each parameter drawn uniformly from its own range.
 
@@ -823,28 +842,23 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     problem = make_problem(meas, param, key=key, walks=walks, bounces=bounces, reference=param.to_material(x_default),
                            jacobian_walks=jacobian_walks)
 
-    fixed_names = []  # the screen's fixed starts, by their index in it
+    fixed = []  # the screen's fixed starts, by their index in it: (key, description, x)
     if start is not None:
         candidates = [("given", x_default)]
     else:
         rng = np.random.default_rng(seed)
         tilt = highlight_tilt(meas) if "theta_p" in param.names else None
-        fixed, fixed_names = [x_default], ["default"]
-        if starts >= 1:
-            fixed.append(param.from_material(Material(layers=(Layer(**{**_DEFAULT, "t": t, **_PLATELET_START}),))))
-            fixed_names.append("broad tilted platelets")
+        fixed = [(k, name, param.from_material(Material(layers=(Layer(**values),))))
+                 for k, name, values in fixed_starts(starts, t, tilt, problem.connection)]
         # The fixed start refined unscreened besides the best screened one: the default, or where the
         # highlight is narrower than the sampling, near-mirror platelets at its tilt. The screen's budget is
         # blind to such a lobe (a quarter of the bounces leave up to 14% of dewy2's energy unfinished):
         # screened, dewy2's near-mirror start ended at 2.0 and 3.2 in two runs that differed only by
         # float rounding; unscreened, at 2.1 and 2.2 under seeds 0 and 1.
-        unscreened = ("default, unscreened", x_default)
-        if starts >= 2 and tilt is not None and problem.connection == "mis":
-            fixed.append(param.from_material(Material(layers=(Layer(**{**_DEFAULT, "t": t, **_MIRROR_START,
-                                                                         "theta_p": tilt}),))))
-            fixed_names.append("near-mirror platelets at the highlight's tilt")
-            unscreened = ("near-mirror, unscreened", fixed[-1])
-        pool = jnp.concatenate([jnp.stack(fixed), random_starts(param, starts + 1 - len(fixed), rng, tilt)])
+        k, _, x = fixed[-1] if fixed[-1][0] == "near-mirror" else fixed[0]
+        unscreened = (f"{k}, unscreened", x)
+        pool = jnp.concatenate([jnp.stack([x for _, _, x in fixed]),
+                                random_starts(param, starts + 1 - len(fixed), rng, tilt)])
         screen = dataclasses.replace(problem, walks=max(jacobian_walks // 2, 8), bounces=max(bounces // 4, 16),
                                      jacobian_walks=None)
         say(f"screening {pool.shape[0]} starts with a short Levenberg-Marquardt at {screen.walks} walks and "
@@ -893,7 +907,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         iterations=int(steps), time_s=round(elapsed, 2), method=method, variant=variant,
         n_evaluations=int(round(n_eval)), walks=int(walks), bounces=int(bounces), jacobian_walks=jacobian_walks,
         seed=int(seed), n_params=int(param.size), connection=problem.connection,
-        fitted=list(param.names), fixed_starts=fixed_names, starts_refined=len(results), starts_at_optimum=len(same),
+        fitted=list(param.names), fixed_starts=[name for _, name, _ in fixed], starts_refined=len(results), starts_at_optimum=len(same),
         unfinished_energy=float(np.max(np.asarray(est.unfinished))),
         mc_error_median=float(np.median(model_std / (meas.std if meas.std is not None else 1.0))),
         check=checks[best],

@@ -159,7 +159,7 @@ def fit_report(result, meas):
         "Energy left in unfinished walks: at most "
         f"{r['unfinished_energy']:.2g} of the incident energy.",
     ]
-    if r.get("connection") == "mis":
+    if r["connection"] == "mis":
         lines.append("The measured highlight is narrower than the angular sampling (near-mirror platelets): each "
                      "scattering vertex connects to the viewer both by next-event estimation and by a flight drawn "
                      "back through the platelet lobe, weighted by multiple importance sampling "
