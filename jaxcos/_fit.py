@@ -25,7 +25,9 @@ Example::
     result.material, result.record["reduced_chi2"]
 """
 
+import concurrent.futures
 import dataclasses
+import threading
 import time
 
 import equinox as eqx
@@ -740,6 +742,28 @@ def _batch_keys(key, n):
     return jax.vmap(lambda b: jax.random.fold_in(key, b))(jnp.arange(n))
 
 
+class _Abandoned(Exception):
+    """Raised in a background refinement whose fit has stopped."""
+
+
+def _in_background(fn, *args):
+    """``fn(*args)`` in a daemon thread; returns its :class:`concurrent.futures.Future`.
+
+    A daemon thread does not hold up the exit of an interrupted process (a
+    thread pool's worker would be joined first, up to a pass of a fit later).
+    """
+    future = concurrent.futures.Future()
+
+    def run():
+        try:
+            future.set_result(fn(*args))
+        except BaseException as err:  # handed to the thread that waits for the result
+            future.set_exception(err)
+
+    threading.Thread(target=run, daemon=True).start()
+    return future
+
+
 def _upper_bound(material_chi2, se):
     """The number a fit ranks materials by: the pair estimate plus twice its SE (see :data:`CHECK_FACTOR`)."""
     return material_chi2 + 2 * se
@@ -813,7 +837,8 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         refine: number of best screened starts refined at the full budget
             (:data:`PASSES` passes each), besides the default start as it is
             (the near-mirror start where the highlight is narrow; the
-            screen's small budget can lead it astray); each is then
+            screen's small budget can lead it astray), which is refined in
+            a second thread while the screen runs; each is then
             checked with :data:`CHECK_FACTOR` times the walks under
             independent keys (:func:`check`), and the best check is the fit
             (the rule is at :data:`CHECK_FACTOR`).
@@ -842,9 +867,30 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     problem = make_problem(meas, param, key=key, walks=walks, bounces=bounces, reference=param.to_material(x_default),
                            jacobian_walks=jacobian_walks)
 
+    # LM: a value per step, a Jacobian (parameters + 1 forwards at jacobian_walks) per accepted step
+    per_jacobian = (param.size + 1) * jacobian_walks / walks
+    stop = threading.Event()
+
+    def refine_start(label, x):
+        """``PASSES`` passes from ``x``: the result ``(label, x, loss, steps, problem)`` and its evaluations."""
+        steps, evaluations = 0, 0.0
+        for _ in range(PASSES):
+            if stop.is_set():
+                raise _Abandoned
+            prob = with_mc_error(problem, meas, x)
+            if method == "lm":
+                x, loss, n, accepted = solve_lm(prob, x)
+                evaluations += n + accepted * per_jacobian
+            else:
+                x, loss, n = solve_powell(prob, x)
+                evaluations += n
+            steps += n
+        return (label, x, loss, steps, prob), evaluations
+
     fixed = []  # the screen's fixed starts, by their index in it: (key, description, x)
     if start is not None:
-        candidates = [("given", x_default)]
+        say(f"refining the given start ({method}, {PASSES} passes)")
+        outcomes = [refine_start("given", x_default)]
     else:
         rng = np.random.default_rng(seed)
         tilt = highlight_tilt(meas) if "theta_p" in param.names else None
@@ -856,37 +902,29 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         # screened, dewy2's near-mirror start ended at 2.0 and 3.2 in two runs that differed only by
         # float rounding; unscreened, at 2.1 and 2.2 under seeds 0 and 1.
         k, _, x = fixed[-1] if fixed[-1][0] == "near-mirror" else fixed[0]
-        unscreened = (f"{k}, unscreened", x)
         pool = jnp.concatenate([jnp.stack([x for _, _, x in fixed]),
                                 random_starts(param, starts + 1 - len(fixed), rng, tilt)])
         screen = dataclasses.replace(problem, walks=max(jacobian_walks // 2, 8), bounces=max(bounces // 4, 16),
                                      jacobian_walks=None)
-        say(f"screening {pool.shape[0]} starts with a short Levenberg-Marquardt at {screen.walks} walks and "
-            f"{screen.bounces} bounces")
-        xs, resid = _screen(screen, pool, _batch_keys(jax.random.fold_in(key, 2), CHECK_BATCHES))
-        # rank the ends by the pair estimate of their chi-square: the screen's own loss at so few walks
-        # also ranks the materials by how noisy they are to simulate (padded points have residual 0)
-        ranks = [_upper_bound(*_pair_chi2(r)) if np.all(np.isfinite(r)) else np.inf for r in np.asarray(resid, float)]
-        order = np.argsort(ranks)[:refine]
-        candidates = [(str(i), xs[i]) for i in order] + [unscreened]
-
-    results = []
-    n_eval = 0
-    # LM: a value per step, a Jacobian (parameters + 1 forwards at jacobian_walks) per accepted step
-    per_jacobian = (param.size + 1) * jacobian_walks / walks
-    for rank, (index, x) in enumerate(candidates):
-        say(f"refining start {rank + 1} of {len(candidates)} ({method}, {PASSES} passes)")
-        steps = 0
-        for _ in range(PASSES):
-            prob = with_mc_error(problem, meas, x)
-            if method == "lm":
-                x, loss, n, accepted = solve_lm(prob, x)
-                n_eval += n + accepted * per_jacobian
-            else:
-                x, loss, n = solve_powell(prob, x)
-                n_eval += n
-            steps += n
-        results.append((index, x, loss, steps, prob))
+        say(f"refining the {k} start unscreened ({method}, {PASSES} passes) while screening {pool.shape[0]} "
+            f"starts with a short Levenberg-Marquardt at {screen.walks} walks and {screen.bounces} bounces")
+        # The unscreened start does not wait for the screen: its tracing and compiling, which leave a core
+        # idle, overlap the screen's (dewy1 cold, in pairs of runs: 58.6 and 65.7 s against 63.0 and 74.4 s).
+        unscreened = _in_background(refine_start, f"{k}, unscreened", x)
+        try:
+            xs, resid = _screen(screen, pool, _batch_keys(jax.random.fold_in(key, 2), CHECK_BATCHES))
+            # rank the ends by the pair estimate of their chi-square: the screen's own loss at so few walks
+            # also ranks the materials by how noisy they are to simulate (padded points have residual 0)
+            ranks = [_upper_bound(*_pair_chi2(r)) if np.all(np.isfinite(r)) else np.inf
+                     for r in np.asarray(resid, float)]
+            order = np.argsort(ranks)[:refine]
+            say(f"refining the best {len(order)} screened start{'s' * (len(order) > 1)} "
+                f"({method}, {PASSES} passes)")
+            outcomes = [refine_start(str(i), xs[i]) for i in order] + [unscreened.result()]
+        finally:
+            stop.set()  # an interrupted fit leaves its background start after the pass it is in
+    results = [r for r, _ in outcomes]
+    n_eval = sum(e for _, e in outcomes)
     check_walks = CHECK_BATCHES * -(-CHECK_FACTOR * walks // CHECK_BATCHES)
     say(f"checking {len(results)} refined start{'s' * (len(results) > 1)} at {check_walks} walks "
         f"in {CHECK_BATCHES} batches under independent keys")

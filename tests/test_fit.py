@@ -388,12 +388,23 @@ def test_each_pass_takes_its_lobe_probabilities_where_it_starts(monkeypatch):
     monkeypatch.setattr(fitting, "solve_lm", spy)
     result = fit(_synthetic(TRUTH, START), variant="single_lobe", walks=16, bounces=16, jacobian_walks=8, starts=2)
     assert fitting.PASSES == 2 and len(calls) == 2 * result.record["starts_refined"] == 4
-    for first, second in (calls[0:2], calls[2:4]):
+    # the unscreened start is refined in a second thread: its passes and the screened start's interleave
+    pairs = [(a, b) for a in calls for b in calls if np.array_equal(b[1], a[2])]
+    assert len(pairs) == 2
+    for first, second in pairs:
         np.testing.assert_array_equal(second[1], first[2])
         # to float32 rounding: the fit maps x to the material and its probabilities in one compiled program
         np.testing.assert_allclose(second[0].lobe_probs, lobe_probabilities(result.param.to_material(first[2])),
                                    rtol=4 * np.finfo(np.float32).eps)
         assert not np.allclose(first[0].lobe_probs, second[0].lobe_probs)
+
+
+def test_background_refinement_hands_over_its_result_and_its_error():
+    from jaxcos._fit import _in_background
+
+    assert _in_background(lambda a, b: a + b, 2, 3).result(timeout=60) == 5
+    with pytest.raises(InputError, match="from the thread"):
+        _in_background(lambda: (_ for _ in ()).throw(InputError("from the thread"))).result(timeout=60)
 
 
 def test_unknown_variant_is_a_clear_error(tmp_path, capsys):
