@@ -909,7 +909,8 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         say(f"refining the {k} start unscreened ({method}, {PASSES} passes) while screening {pool.shape[0]} "
             f"starts with a short Levenberg-Marquardt at {screen.walks} walks and {screen.bounces} bounces")
         # The unscreened start does not wait for the screen: its tracing and compiling, which leave a core
-        # idle, overlap the screen's (dewy1 cold, in pairs of runs: 58.6 and 65.7 s against 63.0 and 74.4 s).
+        # idle, overlap the screen's (dewy1 cold, 10 alternating pairs of runs: 6.1 +- 2.1 s less of about
+        # 66 s; benchmarks/RESULTS.md).
         unscreened = _in_background(refine_start, f"{k}, unscreened", x)
         try:
             xs, resid = _screen(screen, pool, _batch_keys(jax.random.fold_in(key, 2), CHECK_BATCHES))
