@@ -402,9 +402,12 @@ def test_each_pass_takes_its_lobe_probabilities_where_it_starts(monkeypatch):
 def test_background_refinement_hands_over_its_result_and_its_error():
     from jaxcos._fit import _in_background
 
+    def fail():
+        raise InputError("from the thread")
+
     assert _in_background(lambda a, b: a + b, 2, 3).result(timeout=60) == 5
     with pytest.raises(InputError, match="from the thread"):
-        _in_background(lambda: (_ for _ in ()).throw(InputError("from the thread"))).result(timeout=60)
+        _in_background(fail).result(timeout=60)
 
 
 def test_unknown_variant_is_a_clear_error(tmp_path, capsys):
