@@ -5,7 +5,7 @@ settings and the method are documented) writing into ``benchmarks/results/``:
 ``accuracy.json`` (every number, machine record, load average with every
 timing), ``accuracy.md`` (tables), ``accuracy.png`` and ``accuracy_fit.png``.
 
-    python benchmarks/bench_accuracy.py --force        # 47 min on a shared two-core machine
+    python benchmarks/bench_accuracy.py --force        # 11 min on a quiet two-core machine
     python benchmarks/bench_accuracy.py --quick --out /tmp/acc   # a smoke test
 """
 
