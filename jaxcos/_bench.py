@@ -631,8 +631,7 @@ def add_command(sub):
                          description="Sweep walks per incidence and bounces, with exact and Monte Carlo single "
                          "scattering, for dewy1 and matte2 on the standard grid against a high-budget reference, "
                          "and fit a synthetic set at several budgets; writes " + ", ".join(FILES) + " under DIR. "
-                         "The full run took 11 minutes on a quiet two-core machine, the fits 3.5 of them "
-                         "(47 minutes at load 3 to 8 with an older, slower fit).")
+                         "The full run took 11 minutes on a quiet two-core machine, the fits 3.5 of them.")
     a.add_argument("--out", required=True, metavar="DIR")
     a.add_argument("--quick", action="store_true", help="tiny budgets, one product, one fit (a smoke test of about a minute): the numbers mean nothing")
     a.add_argument("--force", action="store_true", help="overwrite existing results in DIR")
