@@ -71,7 +71,7 @@ def _check_section(r):
         "is the column \"material chi-square\" above (the raw chi-square would also rank materials by how noisy "
         "they are to simulate). Its standard error is the jackknife's, leaving out one batch at a time. The fit is the start "
         "for which the material chi-square plus twice its standard error is lowest.",
-    ]
+    ] + _final_step_lines(r)
     if weighted:
         dof = r["n_points"] * 3 - r["n_params"]
         lines += [
@@ -94,6 +94,28 @@ def _check_section(r):
                       "missed the optimum (try more `--starts`, another `--seed`, or `--start` from a guess), or "
                       "the variant lacks an effect the data show (`jaxcos ablate`)."]
     return lines
+
+
+def _final_step_lines(r):
+    """The report's account of :func:`jaxcos._fit.final_step` (Levenberg-Marquardt fits)."""
+    step = r.get("final_step")
+    if not step:
+        return []
+    before = step["check_before"]
+    lines = ["", "Then one damped Gauss-Newton step from that start, on the residuals of its check's pooled estimate "
+             f"({before['walks']} walks, {before['walks'] // r['walks']} times the fit's, so that much less Monte "
+             "Carlo variance) with "
+             "the Jacobian the fit ended with: under its one key the fit also follows that key's Monte Carlo error, "
+             "and the step undoes part of it."]
+    after = step["check_after"]
+    if after is None:
+        return lines + ["The step was not finite and was not taken."]
+    unit = "reduced_chi2" if "reduced_chi2" in before else "material_chi2"
+    se = "reduced_chi2_se" if unit == "reduced_chi2" else "material_chi2_se"
+    what = "reduced chi-square" if unit == "reduced_chi2" else "chi-square"
+    verdict = "It was kept; the fit is the stepped material." if step["kept"] else "It was not kept."
+    return lines + [f"Checked under fresh keys, the stepped material's {what} is {after[unit]:.3f} +- {after[se]:.3f}, "
+                    f"against {before[unit]:.3f} +- {before[se]:.3f} before the step. {verdict}"]
 
 
 def fit_report(result, meas):
