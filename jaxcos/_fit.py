@@ -52,8 +52,9 @@ incidence and looks like a change of the parameters: at 256 walks (error
 about twice a 2% measurement noise) the fitted materials of the bundled sets
 scored reduced chi-square 2.5-3.4 under an independent key, at 1024 walks
 1.8-2.2 (the truth: 1.0-1.15), with the single-pass fit of that time; the
-current fit's materials score 1.07-1.92. About 90% of the error's variance is
-one offset per incidence (benchmarks/RESULTS.md). The fit puts the remaining
+current fit's materials score 1.07-1.92 before its last step and 1.05-1.68
+after it (:data:`FINAL_DAMPING`). About 90% of the error's variance is one
+offset per incidence (benchmarks/RESULTS.md). The fit puts the remaining
 error into the likelihood (see :func:`with_mc_error`) and reports it."""
 FIT_JACOBIAN_WALKS = 128
 """Walks of the objective's Jacobian: the first 128 of the objective's own
