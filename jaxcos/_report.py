@@ -132,7 +132,7 @@ def fit_report(result, meas):
         "",
         "| quantity | value |",
         "|---|---|",
-        f"| loss (objective minimised) | {r['loss']:.6g} |",
+        f"| loss (the objective, under the fit's key, at the fitted material) | {r['loss']:.6g} |",
         f"| L2 (paper's metric: sum of squared differences, file's quantity) | {r['l2']:.6g} |",
         f"| RMSE | {r['rmse']:.4g} |",
     ]
