@@ -97,7 +97,7 @@ def _check_section(r):
 
 
 def _final_step_lines(r):
-    """The report's account of :func:`jaxcos._fit.final_step` (Levenberg-Marquardt fits)."""
+    """The report's account of the fit's last step (:func:`jaxcos._fit.gauss_newton_step`; LM fits)."""
     step = r.get("final_step")
     if not step:
         return []
