@@ -290,6 +290,10 @@ class Problem(eqx.Module):
     def residuals(self, x):
         return _residuals(self, x)
 
+    def weigh(self, model):
+        """The residuals ``(model - measured) / std`` of a model ``(N, 3)`` in the file's quantity, flattened."""
+        return ((model - self.measured) / self.sigma).reshape(-1)
+
     def loss(self, x):
         r = self.residuals(x)
         return jnp.sum(r * r)
@@ -297,7 +301,7 @@ class Problem(eqx.Module):
 
 @jax.custom_jvp
 def _residuals(problem, x):
-    return ((problem.model(x) - problem.measured) / problem.sigma).reshape(-1)
+    return problem.weigh(problem.model(x))
 
 
 def _jacobian_walks(problem):
@@ -1008,8 +1012,10 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         step_record = dict(damping=FINAL_DAMPING, kept=kept, check_before=final, check_after=c_step)
         if kept:
             x, final = x_step, c_step
-            loss = float(problem.loss(x))
     est = problem.estimate(x)
+    if step_record is not None and step_record["kept"]:  # the objective at the stepped material, from its estimate
+        r = problem.weigh(problem.scale * est.f)
+        loss = float(jnp.sum(r * r))
     model = np.asarray(problem.scale * est.f)
     model_std = np.asarray(problem.scale * est.stderr)
     elapsed = time.perf_counter() - t0

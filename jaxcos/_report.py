@@ -110,9 +110,8 @@ def _final_step_lines(r):
     after = step["check_after"]
     if after is None:
         return lines + ["The step was not finite and was not taken."]
-    unit = "reduced_chi2" if "reduced_chi2" in before else "material_chi2"
-    se = "reduced_chi2_se" if unit == "reduced_chi2" else "material_chi2_se"
-    what = "reduced chi-square" if unit == "reduced_chi2" else "chi-square"
+    unit, se, what = (("reduced_chi2", "reduced_chi2_se", "reduced chi-square") if "reduced_chi2" in before
+                      else ("material_chi2", "material_chi2_se", "chi-square"))
     verdict = "It was kept; the fit is the stepped material." if step["kept"] else "It was not kept."
     return lines + [f"Checked under fresh keys, the stepped material's {what} is {after[unit]:.3f} +- {after[se]:.3f}, "
                     f"against {before[unit]:.3f} +- {before[se]:.3f} before the step. {verdict}"]
