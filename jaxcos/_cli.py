@@ -132,7 +132,8 @@ def _cmd_fit(args):
                  start=start, t=args.t, progress=progress("fit"))
     write_fit(result, meas, args.out, force=args.force)
     r = result.record
-    chi2 = f", reduced chi-square {r['reduced_chi2']:.2f}" if "reduced_chi2" in r else ""
+    chi2 = (f", reduced chi-square {r['reduced_chi2']:.2f}" if "reduced_chi2" in r
+            else " (unweighted: the file has no std; report.md says which points carry the loss)")
     if "reduced_chi2" in r["check"]:
         chi2 += f" ({r['check']['reduced_chi2']:.2f} +- {r['check']['reduced_chi2_se']:.2f} under independent keys)"
     print(f"fitted {r['variant']} to {r['n_points']} points in {r['time_s']:.1f} s: L2 {r['l2']:.4g}, "

@@ -117,6 +117,42 @@ def _final_step_lines(r):
                     f"against {before[unit]:.3f} +- {before[se]:.3f} before the step. {verdict}"]
 
 
+BRIGHT_FRACTION = 0.1
+"""An unweighted fit's report says how much of L2 its brightest points (this fraction of them) carry."""
+RELATIVE_MISS = 0.25
+"""... and warns when the other points' median relative difference exceeds this."""
+
+
+def _unweighted_lines(meas, model):
+    """Where an unweighted fit's L2 comes from: its brightest points against the rest.
+
+    Without std columns every point counts by its absolute difference, so a
+    few bright highlight points can outweigh the whole diffuse body; these
+    lines say how much, and what to do if the rest matters.
+    """
+    brightness = meas.values.mean(axis=1)
+    n_bright = max(1, int(round(BRIGHT_FRACTION * brightness.size)))
+    bright = np.zeros(brightness.size, bool)
+    bright[np.argsort(brightness, kind="stable")[-n_bright:]] = True
+    resid2 = ((model - meas.values) ** 2).sum(axis=1)
+    share = resid2[bright].sum() / max(resid2.sum(), 1e-300)
+    miss = float(np.median(np.abs(model[~bright] - meas.values[~bright])
+                           / np.maximum(np.abs(meas.values[~bright]), 1e-30))) if n_bright < bright.size else 0.0
+    lines = [
+        "",
+        "## Where the loss comes from",
+        "",
+        f"The file has no std, so the fit minimises the plain L2: every point counts by its absolute difference, "
+        f"and the brightest weigh most. The brightest {n_bright} of {bright.size} points (mean value at least "
+        f"{brightness[bright].min():.3g}) carry {100 * share:.0f}% of L2; on the other points the fitted values "
+        f"differ from the measured by {100 * miss:.0f}% in the median.",
+    ]
+    if miss > RELATIVE_MISS:
+        lines[-1] += (" **The fit favours the bright points over the rest of the table.** If the rest matters, "
+                      "give the file std columns: a relative noise level weighs each point by its size.")
+    return lines
+
+
 def fit_report(result, meas):
     """The human-readable ``report.md`` of a :class:`~jaxcos.FitResult`."""
     r = result.record
@@ -194,6 +230,7 @@ def fit_report(result, meas):
                      "A larger budget (`--budget`, `--walks`) shrinks the first as 1/sqrt(walks).")
     else:
         lines.append(f"Median Monte Carlo standard error of the model: {r['mc_error_median']:.3g} (the file has no std).")
+        lines += _unweighted_lines(meas, result.model)
     lines += ["", "![measured, fitted and difference](fit.png)", ""]
     return "\n".join(lines)
 

@@ -494,3 +494,24 @@ def test_existing_result_is_not_overwritten(tmp_path, capsys):
     assert main(["fit", str(csv), "--out", str(out)]) == 2
     assert "already exists" in capsys.readouterr().err
     assert (out / "params.json").read_text() == "{}"
+
+
+def test_unweighted_report_says_where_the_loss_comes_from():
+    """A fit to a file without std says how much of L2 its brightest points carry, and when the rest is missed."""
+    from jaxcos._report import _unweighted_lines
+
+    values = np.full((20, 3), 0.5)
+    values[:2] = 10.0                                   # two bright highlight points of twenty
+    meas = Measurements(theta_i=np.full(20, 30.0), theta_o=np.linspace(-60.0, 80.0, 20), phi_o=np.zeros(20),
+                        values=values, std=None, quantity="reflectance_factor", metadata={}, path="x.csv")
+    # the highlight fitted, the body missed by 60%: the body carries all of L2
+    missed = values.copy()
+    missed[2:] *= 0.4
+    text = "\n".join(_unweighted_lines(meas, missed))
+    assert "brightest 2 of 20 points (mean value at least 10)" in text
+    assert "carry 0% of L2" in text and "by 60% in the median" in text and "favours the bright points" in text
+    # the body fitted to 10%, the highlight off by 1: the highlight carries 2 x 3 / (2 x 3 + 18 x 3 x 0.05^2)
+    close = values * 1.1
+    close[:2] = 11.0
+    text = "\n".join(_unweighted_lines(meas, close))
+    assert "carry 98% of L2" in text and "by 10% in the median" in text and "favours" not in text
