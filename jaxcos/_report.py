@@ -120,7 +120,7 @@ def _final_step_lines(r):
 BRIGHT_FRACTION = 0.1
 """An unweighted fit's report says how much of L2 its brightest points (this fraction of them) carry."""
 RELATIVE_MISS = 0.25
-"""... and warns when the other points' median relative difference exceeds this."""
+"""An unweighted fit's report warns when its other points' median relative difference exceeds this."""
 
 
 def _unweighted_lines(meas, model):
@@ -138,19 +138,14 @@ def _unweighted_lines(meas, model):
     share = resid2[bright].sum() / max(resid2.sum(), 1e-300)
     miss = float(np.median(np.abs(model[~bright] - meas.values[~bright])
                            / np.maximum(np.abs(meas.values[~bright]), 1e-30))) if n_bright < bright.size else 0.0
-    lines = [
-        "",
-        "## Where the loss comes from",
-        "",
-        f"The file has no std, so the fit minimises the plain L2: every point counts by its absolute difference, "
-        f"and the brightest weigh most. The brightest {n_bright} of {bright.size} points (mean value at least "
-        f"{brightness[bright].min():.3g}) carry {100 * share:.0f}% of L2; on the other points the fitted values "
-        f"differ from the measured by {100 * miss:.0f}% in the median.",
-    ]
+    text = (f"The file has no std, so the fit minimises the plain L2: every point counts by its absolute difference, "
+            f"and the brightest weigh most. The brightest {n_bright} of {bright.size} points (mean value at least "
+            f"{brightness[bright].min():.3g}) carry {100 * share:.0f}% of L2; on the other points the fitted values "
+            f"differ from the measured by {100 * miss:.0f}% in the median.")
     if miss > RELATIVE_MISS:
-        lines[-1] += (" **The fit favours the bright points over the rest of the table.** If the rest matters, "
-                      "give the file std columns: a relative noise level weighs each point by its size.")
-    return lines
+        text += (" **The fit favours the bright points over the rest of the table.** If the rest matters, "
+                 "give the file std columns: a relative noise level weighs each point by its size.")
+    return ["", "## Where the loss comes from", "", text]
 
 
 def fit_report(result, meas):
