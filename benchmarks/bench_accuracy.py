@@ -12,7 +12,7 @@ timing), ``accuracy.md`` (tables), ``accuracy.png`` and ``accuracy_fit.png``.
 import os
 import sys
 
-from jaxcos._cli import main
+from jaxcos.cli import main
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

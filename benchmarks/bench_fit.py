@@ -12,7 +12,7 @@ needs to reach Powell's final loss (from a second, compiled run whose accepted
 losses a host callback times), the time each needs to reach the worse of the
 two final losses (Powell's evaluations timed from the end of the first, which
 compiles the objective), and both solutions' chi-square under an
-independent key (``jaxcos._fit.check``), which neither solver could tune.
+independent key (``jaxcos.inference._fit.check``), which neither solver could tune.
 
     python benchmarks/bench_fit.py dewy1 matte2     # appends to benchmarks/results/fit.json
     python benchmarks/bench_fit.py --powell 1000 dewy1   # Powell's evaluation cap (default 4000)
@@ -27,7 +27,7 @@ import time
 import jax
 
 import jaxcos
-from jaxcos._fit import CHECK_FACTOR, check, fixed_starts, highlight_tilt, solve_lm, solve_powell, with_mc_error
+from jaxcos.inference._fit import CHECK_FACTOR, check, fixed_starts, highlight_tilt, solve_lm, solve_powell, with_mc_error
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -44,7 +44,7 @@ def _lm_trace(problem, x0, max_steps=40):
     import equinox as eqx
     import optimistix as optx
 
-    from jaxcos._fit import LevenbergMarquardt
+    from jaxcos.inference._fit import LevenbergMarquardt
 
     trace, t0 = [], [0.0]
 
@@ -65,7 +65,7 @@ def _lm_trace(problem, x0, max_steps=40):
 
 
 def _starts(meas, problem):
-    """The fit's fixed starts for ``meas`` (:func:`jaxcos._fit.fixed_starts`): ``{key: Layer values}``."""
+    """The fit's fixed starts for ``meas`` (:func:`jaxcos.inference._fit.fixed_starts`): ``{key: Layer values}``."""
     tilt = highlight_tilt(meas) if "theta_p" in problem.param.names else None
     return {key: values for key, _, values in fixed_starts(2, 16.0, tilt, problem.connection)}
 

@@ -29,7 +29,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 
 import jaxcos  # noqa: E402
-from jaxcos._posterior import uncertainty  # noqa: E402
+from jaxcos.inference._posterior import uncertainty  # noqa: E402
 
 
 def _machine():
@@ -79,7 +79,7 @@ def coverage(replicates, hi_walks, lo_walks):
 
 
 def report(path):
-    from jaxcos._cli import main
+    from jaxcos.cli import main
 
     out = os.path.join("/tmp", "jaxcos-bench-uncertainty")
     t0 = time.perf_counter()

@@ -5,6 +5,11 @@ Layered media of Henyey-Greenstein diffusers and SGGX specular platelets
 JAX, differentiable with respect to every material parameter, and fitted to
 gonioreflectometer measurements.
 
+The package is layered, each layer importing only those below it:
+:mod:`jaxcos.model` (physics), :mod:`jaxcos.io` (files),
+:mod:`jaxcos.render` (previews), :mod:`jaxcos.inference` (fits, posteriors,
+ablation), :mod:`jaxcos.report` (reports and figures) and :mod:`jaxcos.cli`.
+
 Example::
 
     import jax, jaxcos
@@ -13,23 +18,44 @@ Example::
     f.shape  # (2, 3): the BSDF in 1/sr, linear sRGB
 """
 
+__version__ = "0.1.0"
+
 from ._errors import InputError
-from ._material import (
+from .model import (
+    BUDGETS,
+    DEFAULT_BOUNCES,
+    DEFAULT_WALKS,
     PRODUCTS,
     VARIANTS,
+    Estimate,
     Layer,
     Material,
-    load_params,
+    Query,
+    inplane_bsdf,
+    lobe_probabilities,
+    make_query,
     published,
-    save_params,
+    simulate,
     with_variant,
 )
-
-__version__ = "0.1.0"
-from ._walk import DEFAULT_BOUNCES, DEFAULT_WALKS, Estimate, Query, inplane_bsdf, lobe_probabilities, make_query, simulate
-from ._fit import FitResult, fit
-from ._measurements import Measurements, import_raw, load_measurements, save_measurements
-from ._report import write_fit
-from ._posterior import Posterior, uncertainty, write_uncertainty
-from ._ablate import ABLATION_VARIANTS, AblationResult, KubelkaMunk, ablate, fit_kubelka_munk, km_combine, km_invert, km_layer, km_over_background, km_r_inf, write_ablation
-from ._render import render
+from .io import Measurements, import_raw, load_angles, load_measurements, load_params, save_measurements, save_params
+from .render import render
+from .inference import (
+    ABLATION_VARIANTS,
+    AblationResult,
+    FitResult,
+    KubelkaMunk,
+    Posterior,
+    ablate,
+    fit,
+    fit_kubelka_munk,
+    km_combine,
+    km_invert,
+    km_layer,
+    km_over_background,
+    km_r_inf,
+    uncertainty,
+)
+from .report import write_fit
+from .inference._posterior import write_uncertainty
+from .inference._ablate import write_ablation

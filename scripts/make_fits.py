@@ -9,7 +9,7 @@ parameters (MODEL.md section 5) as ``params.json`` files, for comparison.
 import os
 import sys
 
-from jaxcos._cli import main
+from jaxcos.cli import main
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PRODUCTS = ("dewy1", "dewy2", "matte1", "matte2")

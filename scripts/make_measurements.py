@@ -33,7 +33,7 @@ Values and std are written with 6 significant digits.
 The spectral file ``dewy1_spectral.csv`` holds the noisy values of
 ``dewy1.csv`` as spectra at 380, 390, ..., 780 nm: per point, the quadratic
 polynomial in wavelength whose linear sRGB under D65
-(:func:`jaxcos._measurements.spectral_to_srgb`) is exactly that point's
+(:func:`jaxcos.io._measurements.spectral_to_srgb`) is exactly that point's
 ``r, g, b`` (a flat spectrum for a grey). Reading it gives back ``dewy1.csv``
 to about 1e-9.
 
@@ -57,8 +57,8 @@ import jax
 import numpy as np
 
 import jaxcos
-from jaxcos._material import material_to_dict
-from jaxcos._measurements import Measurements, load_measurements, save_measurements, spectral_to_srgb
+from jaxcos.io import material_to_dict
+from jaxcos.io._measurements import Measurements, load_measurements, save_measurements, spectral_to_srgb
 
 SEED = 20240601
 BOUNCES = 256

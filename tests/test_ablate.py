@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jaxcos
-from jaxcos._ablate import (
+from jaxcos.inference._ablate import (
     ABLATION_FILES,
     CSV_COLUMNS,
     check_variants,
@@ -22,10 +22,10 @@ from jaxcos._ablate import (
     start_from_two_lobe,
     _common_shape,
 )
-from jaxcos._cli import main
-from jaxcos._fit import make_problem, parameterization
-from jaxcos._kubelka_munk import make_km_problem
-from jaxcos._measurements import Measurements
+from jaxcos.cli import main
+from jaxcos.inference._fit import make_problem, parameterization
+from jaxcos.inference._kubelka_munk import make_km_problem
+from jaxcos.io._measurements import Measurements
 
 # --- structure ---------------------------------------------------------------------------
 
@@ -101,7 +101,7 @@ def test_starts_for_reduced_and_nesting_variants():
     up = embed(single, "two_lobe", two)
     assert up.variant == "two_lobe" and float(up.layers[0].w_g) == 0.5
     assert float(up.layers[0].g2) == float(up.layers[0].g1) == float(single.layers[0].g1)
-    from jaxcos._walk import _single_scattering, _medium
+    from jaxcos.model._walk import _single_scattering, _medium
 
     np.testing.assert_allclose(_single_scattering(_medium(up), None, query.wi, query.wo),
                                _single_scattering(_medium(single), None, query.wi, query.wo), rtol=1e-6)

@@ -9,13 +9,13 @@ import os
 
 import pytest
 
-import jaxcos._eval
-import jaxcos._fit
-from jaxcos._bench import FILES
-from jaxcos._cli import main
+import jaxcos.cli._eval
+import jaxcos.inference._fit
+from jaxcos.inference._bench import FILES
+from jaxcos.cli import main
 from jaxcos._errors import InputError
-from jaxcos._fit import FIT_BOUNCES, FIT_WALKS
-from jaxcos._walk import BUDGETS, DEFAULT_BOUNCES, DEFAULT_WALKS, resolve_budget
+from jaxcos.inference._fit import FIT_BOUNCES, FIT_WALKS
+from jaxcos.model._walk import BUDGETS, DEFAULT_BOUNCES, DEFAULT_WALKS, resolve_budget
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MATTE2 = os.path.join(ROOT, "measurements", "matte2.csv")
@@ -68,7 +68,7 @@ def _raise():
 
 def test_cli_budget_reaches_fit_and_eval(tmp_path, monkeypatch, capsys):
     seen = {}
-    monkeypatch.setattr(jaxcos._fit, "fit", lambda meas, **kw: (seen.update(kw), _raise()))
+    monkeypatch.setattr(jaxcos.inference._fit, "fit", lambda meas, **kw: (seen.update(kw), _raise()))
     assert main(["fit", MATTE2, "--out", str(tmp_path / "f"), "--budget", "fast"]) == 2
     assert (seen["walks"], seen["bounces"]) == BUDGETS["fast"]
     assert main(["fit", MATTE2, "--out", str(tmp_path / "f"), "--budget", "accurate", "--walks", "32"]) == 2
@@ -76,7 +76,7 @@ def test_cli_budget_reaches_fit_and_eval(tmp_path, monkeypatch, capsys):
     assert main(["fit", MATTE2, "--out", str(tmp_path / "f")]) == 2
     assert (seen["walks"], seen["bounces"]) == (FIT_WALKS, FIT_BOUNCES)
 
-    monkeypatch.setattr(jaxcos._eval, "run_eval", lambda args: (seen.update(walks=args.walks, bounces=args.bounces),
+    monkeypatch.setattr(jaxcos.cli._eval, "run_eval", lambda args: (seen.update(walks=args.walks, bounces=args.bounces),
                                                                  _raise()))
     params = os.path.join(ROOT, "fits", "matte2", "params.json")
     angles = os.path.join(ROOT, "measurements", "standard_angles.csv")

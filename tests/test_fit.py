@@ -11,13 +11,13 @@ import pytest
 from scipy.stats import chi2
 
 import jaxcos
-from jaxcos._cli import main
+from jaxcos.cli import main
 import optimistix as optx
 
-from jaxcos._fit import (LevenbergMarquardt, check, fit, highlight_tilt, make_problem, narrow_highlight,
+from jaxcos.inference._fit import (LevenbergMarquardt, check, fit, highlight_tilt, make_problem, narrow_highlight,
                          parameterization, random_starts)
 from jaxcos._errors import InputError
-from jaxcos._measurements import Measurements
+from jaxcos.io._measurements import Measurements
 
 # The data are made by the fit's own estimator (same key, budget and lobe
 # probabilities) plus noise, so the model at the truth reproduces the
@@ -64,7 +64,7 @@ def _delta_chi2(result, truth=TRUTH):
 # alpha_p, so the local slope overstates how well the data pin them.)
 CHI2_BOUND = float(chi2.ppf(1 - 1e-4, 10))
 # The data are simulated with the lobe probabilities of the first pass; the
-# fit's second pass takes new ones (jaxcos._fit.PASSES), so its objective is a
+# fit's second pass takes new ones (jaxcos.inference._fit.PASSES), so its objective is a
 # slightly different estimator and need not score the truth exactly. It must
 # still end within one chi-square unit of the truth (the smallest difference
 # the data tell apart for one parameter): a worse basin is tens of units away.
@@ -143,7 +143,7 @@ def test_coloured_jacobian_is_the_full_one(variant, extra):
     recomputed from the albedos, say) would put non-zero entries where the
     colouring assumes zeros.
     """
-    from jaxcos._fit import _residuals
+    from jaxcos.inference._fit import _residuals
 
     data = _synthetic(TRUTH, START)
     param = parameterization(variant, template=START, **extra)
@@ -263,7 +263,7 @@ def test_levenberg_marquardt_linearises_only_at_accepted_steps():
 
 def test_solve_lm_reports_the_loss_of_its_solution():
     """The loss ``solve_lm`` returns (kept from its last accepted step) is the objective at the point it returns."""
-    from jaxcos._fit import solve_lm
+    from jaxcos.inference._fit import solve_lm
 
     data = _synthetic(TRUTH, START)
     param = parameterization("single_lobe", template=START)
@@ -351,7 +351,7 @@ def _tiny():
 @pytest.mark.slow
 def test_cli_fit_reports_its_check(tmp_path, capsys):
     """``jaxcos fit`` records the Jacobian's walks and the independent check, and the report explains the check."""
-    from jaxcos._measurements import save_measurements
+    from jaxcos.io._measurements import save_measurements
 
     csv = tmp_path / "m.csv"
     save_measurements(_synthetic(TRUTH, START), csv)
@@ -391,7 +391,7 @@ def test_gauss_newton_step_follows_the_pooled_residuals():
     fit's own model does (under a fixed key the objective is rough, so the
     fit's own model asks for a step too: one its objective rejected).
     """
-    from jaxcos._fit import gauss_newton_step, solve_lm
+    from jaxcos.inference._fit import gauss_newton_step, solve_lm
 
     data = _synthetic(TRUTH, START)
     param = parameterization("single_lobe", template=START)
@@ -408,7 +408,7 @@ def test_gauss_newton_step_is_the_linear_least_squares_step():
     """Undamped, the step solves the linearised problem; points with an infinite std take no part."""
     import types
 
-    from jaxcos._fit import gauss_newton_step
+    from jaxcos.inference._fit import gauss_newton_step
 
     rng = np.random.default_rng(3)
     measured, sigma = rng.uniform(0.1, 1.0, (6, 3)), rng.uniform(0.01, 0.1, (6, 3))
@@ -430,8 +430,8 @@ def test_gauss_newton_step_is_the_linear_least_squares_step():
 
 def test_each_pass_takes_its_lobe_probabilities_where_it_starts(monkeypatch):
     """A refined start gets ``PASSES`` passes; each holds the lobe probabilities of its own starting point."""
-    import jaxcos._fit as fitting
-    from jaxcos._walk import lobe_probabilities
+    import jaxcos.inference._fit as fitting
+    from jaxcos.model._walk import lobe_probabilities
 
     calls, real = [], fitting.solve_lm
 
@@ -455,7 +455,7 @@ def test_each_pass_takes_its_lobe_probabilities_where_it_starts(monkeypatch):
 
 
 def test_background_refinement_hands_over_its_result_and_its_error():
-    from jaxcos._fit import _in_background
+    from jaxcos.inference._fit import _in_background
 
     def fail():
         raise InputError("from the thread")
@@ -498,7 +498,7 @@ def test_existing_result_is_not_overwritten(tmp_path, capsys):
 
 def test_unweighted_report_says_where_the_loss_comes_from():
     """A fit to a file without std says how much of L2 its brightest points carry, and when the rest is missed."""
-    from jaxcos._report import _unweighted_lines
+    from jaxcos.report._fit import _unweighted_lines
 
     values = np.full((20, 3), 0.5)
     values[:2] = 10.0                                   # two bright highlight points of twenty

@@ -7,7 +7,7 @@ import pytest
 from scipy.integrate import solve_bvp
 
 import jaxcos
-from jaxcos._kubelka_munk import (
+from jaxcos.inference._kubelka_munk import (
     KM_N_PARAMS,
     beckmann,
     directions,
@@ -17,7 +17,7 @@ from jaxcos._kubelka_munk import (
     km_to_x,
     make_km_problem,
 )
-from jaxcos._measurements import Measurements
+from jaxcos.io._measurements import Measurements
 
 S = np.array([5.0, 20.0, 50.0])
 K = np.array([0.5, 1.0, 0.1])

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxcos
-from jaxcos._cli import main
+from jaxcos.cli import main
 
 LAYER = {"t": 16.0, "c_d": 0.9, "albedo_d": [0.99, 0.98, 0.95], "g1": 0.55, "g2": 0.09, "w_g": 1.0,
          "albedo_p": [0.75, 0.85, 0.99], "alpha_p": 0.13, "theta_p_deg": 1.47}

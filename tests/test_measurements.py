@@ -11,16 +11,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from jaxcos._cli import main
+from jaxcos.cli import main
 from jaxcos._errors import InputError
-from jaxcos._measurements import (
+from jaxcos.io._measurements import (
     Measurements,
     import_raw,
     load_measurements,
     save_measurements,
     spectral_to_srgb,
 )
-from jaxcos._plot import default_exposure, draw_reflectance, encode_srgb, plot_measurements
+from jaxcos.io._plot import default_exposure, draw_reflectance, encode_srgb, plot_measurements
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 WAVELENGTHS = np.arange(380, 781, 10)
@@ -316,7 +316,7 @@ def test_cli_import_then_plot(tmp_path, capsys):
 def test_cli_subprocess_gives_one_line_and_no_traceback(tmp_path):
     path = write(tmp_path, BAD_CSV["nan"][0])
     out = tmp_path / "fig.png"
-    proc = subprocess.run([sys.executable, "-m", "jaxcos._cli", "plot", path, "--out", str(out)],
+    proc = subprocess.run([sys.executable, "-m", "jaxcos.cli._main", "plot", path, "--out", str(out)],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr == f"jaxcos plot: {path}, line 3: column 'g' holds NaN; only finite numbers are allowed.\n"

@@ -1,4 +1,4 @@
-"""Tests of ``jaxcos._phase``: Henyey-Greenstein and SGGX specular phase functions and samplers.
+"""Tests of ``jaxcos.model._phase``: Henyey-Greenstein and SGGX specular phase functions and samplers.
 
 The code under test runs in float32 (the JAX default). Reference values and all
 quadratures are float64 numpy. The four groups follow MODEL.md sections 2 and 7:
@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 from scipy import stats
 
-from jaxcos import _phase as P
+from jaxcos.model import _phase as P
 
 EPS32 = 2.0**-24  # unit roundoff of float32
 F32_TOL = 1e-6  # float32 evaluation error of a phase function, relative (see module docstring)

@@ -1,4 +1,4 @@
-"""Tests of the preview renderer (``jaxcos._render``) and the ``jaxcos render`` command.
+"""Tests of the preview renderer (``jaxcos.render._render``) and the ``jaxcos render`` command.
 
 References:
 
@@ -23,9 +23,9 @@ import numpy as np
 import pytest
 
 from jaxcos import InputError, Layer, Material
-from jaxcos._cli import main
-from jaxcos._render import BSDFTable, _despeckle, on_base, render, shade, tabulate
-from jaxcos._walk import Query, simulate
+from jaxcos.cli import main
+from jaxcos.render._render import BSDFTable, _despeckle, on_base, render, shade, tabulate
+from jaxcos.model._walk import Query, simulate
 
 SIZE = 16
 WALKS, BOUNCES = 256, 8  # shared by the isotropic renders (one compilation)

@@ -1,4 +1,4 @@
-"""Statistical and structural tests of the estimator (``jaxcos._walk``), through the public API.
+"""Statistical and structural tests of the estimator (``jaxcos.model._walk``), through the public API.
 
 Every statistical tolerance below is a multiple of a standard error that the
 test measures (``Estimate.stderr``, or the spread of independent replicate
@@ -34,7 +34,7 @@ import jaxcos
 from jaxcos import Layer, Material
 
 # the published fits as Layer keyword arguments (MODEL.md section 5, paper Table 2)
-_PUB = jaxcos._material._PUBLISHED
+_PUB = jaxcos.model._material._PUBLISHED
 
 _LAYER_FIELDS = ("t", "c_d", "albedo_d", "g1", "g2", "w_g", "albedo_p", "alpha_p", "theta_p", "phi_p")
 
@@ -909,7 +909,7 @@ def test_directions_drawn_from_another_material_are_unbiased():
 @pytest.mark.parametrize("mis", [False, True])
 def test_first_walks_of_a_batch_are_the_smaller_batch(mis):
     """A walk's random numbers do not depend on the batch size (the fit's Jacobian uses the first walks)."""
-    from jaxcos._walk import _medium, _walk_one
+    from jaxcos.model._walk import _medium, _walk_one
 
     material = jaxcos.published("dewy1")
     query = jaxcos.make_query([30.0, 30.0], [-20.0, 40.0])

@@ -43,7 +43,7 @@ import time
 
 import numpy as np
 
-from ._errors import InputError, refuse_overwrite, staged_outputs
+from .._errors import InputError, refuse_overwrite, staged_outputs
 from ._fit import FIT_BOUNCES, FIT_WALKS
 
 FILES = ("accuracy.json", "accuracy.md", "accuracy.png", "accuracy_fit.png")
@@ -167,7 +167,7 @@ def reference(material, query, settings, say):
     """Mean and standard error ``(N, 3)`` of the BSDF at the reference budget (batches of independent keys)."""
     import jax
 
-    from ._walk import simulate
+    from ..model import simulate
 
     walks, bounces = settings.reference
     batch = min(settings.reference_batch, walks)
@@ -190,7 +190,7 @@ def _forward(material, query, walks, bounces, single, seeds):
     """Compile and run one budget on ``seeds`` keys: estimates, timings, load."""
     import jax
 
-    from ._walk import lobe_probabilities, simulate
+    from ..model import lobe_probabilities, simulate
 
     lp = lobe_probabilities(material)
     run = jax.jit(lambda key: simulate(material, query, key, walks=walks, bounces=bounces, lobe_probs=lp,
@@ -218,7 +218,7 @@ def bsdf_problem(material, query, key, walks, bounces):
     import jax.numpy as jnp
 
     from ._fit import Problem, parameterization
-    from ._walk import lobe_probabilities
+    from ..model import lobe_probabilities
 
     param = parameterization("two_lobe", template=material)
     n = query.pair_i.shape[0]
@@ -303,7 +303,7 @@ def sweep_product(product, settings, say):
 
 
 def _param_errors(fitted, truth):
-    from ._material import material_to_dict
+    from ..io import material_to_dict
 
     f, t = material_to_dict(fitted)["layers"][0], material_to_dict(truth)["layers"][0]
     return {k: float(np.max(np.abs(np.asarray(f[k], float) - np.asarray(t[k], float)))) for k in t if k != "t"}
@@ -319,7 +319,7 @@ def _check(material, meas, grid_query, truth, settings):
     """
     import jax
 
-    from ._walk import make_query, simulate
+    from ..model import make_query, simulate
 
     walks, bounces = settings.check_budget
     key = jax.random.key(99)
@@ -337,7 +337,7 @@ def fit_budgets(settings, say):
     """Fit the synthetic set at each budget of ``settings``; a list of records and the truth's own numbers."""
     import jaxcos
     from ._fit import _DEFAULT, fit
-    from ._material import Layer, Material
+    from ..model import Layer, Material
 
     path = os.path.join(ROOT, "measurements", f"{settings.fit_product}.csv")
     if not os.path.exists(path):
@@ -617,7 +617,7 @@ def write_outputs(data, out_dir, *, force=False):
 
 
 def _cmd_accuracy(args):
-    from ._cli import progress
+    from ..cli._main import progress
 
     accuracy_benchmark(args.out, quick=args.quick, force=args.force, progress=progress("bench accuracy"))
 

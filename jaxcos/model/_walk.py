@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _phase as P
-from ._errors import InputError
+from .._errors import InputError
 
 DEFAULT_WALKS = 128
 """Walks per incidence direction (the paper's budget)."""

@@ -61,7 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ._errors import InputError
+from .._errors import InputError
 
 KM_PARAMETERS = ("r_inf", "sx", "roughness", "f0")
 """Fitted parameters of the Kubelka-Munk baseline, in the order of ``x``."""

@@ -43,7 +43,7 @@ import warnings
 
 import numpy as np
 
-from ._errors import InputError
+from .._errors import InputError, refuse_overwrite
 
 QUANTITIES = ("reflectance_factor", "brdf")
 """Quantities a file may hold: ``pi * f`` (1 for a white diffuser) or ``f`` (1/sr)."""
@@ -582,3 +582,61 @@ def _write_atomic(path, text):
         if os.path.exists(tmp):
             os.remove(tmp)
         raise InputError(f"{path}: cannot be written ({err.strerror}).") from None
+
+
+_ANGLE_COLUMNS = ("theta_i", "theta_o", "phi_o")
+
+
+def load_angles(path):
+    """Read ``theta_i,theta_o[,phi_o]`` rows (degrees; other columns are ignored).
+
+    Returns:
+        ``(theta_i, theta_o, phi_o)`` as float arrays.
+
+    Raises:
+        InputError: one sentence naming the file, the line and the problem.
+    """
+    path = os.fspath(path)
+    what = "an angles CSV with columns theta_i,theta_o[,phi_o]"
+    lines = _read_lines(path, what)
+    _, _, header_line, header = _split_header(path, lines)
+    for name in _ANGLE_COLUMNS[:2]:
+        if name not in header:
+            raise InputError(f"{_where(path, header_line)}: the column '{name}' is missing; {what} is expected.")
+    index = {name: header.index(name) for name in _ANGLE_COLUMNS if name in header}
+    rows = []
+    for line, text in lines:
+        if line <= header_line or not text.strip() or text.lstrip().startswith("#"):
+            continue
+        cells = [c.strip() for c in text.split(",")]
+        if len(cells) != len(header):
+            raise InputError(f"{_where(path, line)}: {len(cells)} cells for {len(header)} columns.")
+        values = {}
+        for name, i in index.items():
+            value = _parse_number(path, line, name, cells[i])
+            if value is None and name != "phi_o":
+                raise InputError(f"{_where(path, line)}: the cell of column '{name}' is empty.")
+            values[name] = 0.0 if value is None else value
+        rows.append((line, values["theta_i"], values["theta_o"], values.get("phi_o", 0.0)))
+    if not rows:
+        raise InputError(f"{path}: the header has no rows under it; {what} is expected.")
+    _check_angles(path, rows)
+    _check_duplicates(path, rows)
+    _, ti, to, po = (np.array(c, dtype=float) for c in zip(*rows))
+    return ti, to, po
+
+
+def write_evaluation(path, theta_i, theta_o, phi_o, values, std, *, quantity, overwrite=False):
+    """Write the rows of ``jaxcos eval`` (FORMATS.md) atomically; an existing file is kept unless ``overwrite``."""
+    path = os.fspath(path)
+    refuse_overwrite([path], overwrite)
+    with_phi = bool(np.any(phi_o != 0))
+    header = "theta_i,theta_o," + ("phi_o," if with_phi else "") + "r,g,b,r_std,g_std,b_std"
+    lines = [f"# quantity: {quantity}", header]
+    for k in range(len(theta_i)):
+        angles = [theta_i[k], theta_o[k]] + ([phi_o[k]] if with_phi else [])
+        lines.append(",".join(f"{a:g}" for a in angles) + "," + ",".join(f"{v:.7g}" for v in (*values[k], *std[k])))
+    tmp = path + ".tmp"
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write("\n".join(lines) + "\n")
+    os.replace(tmp, path)

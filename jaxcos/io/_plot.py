@@ -27,7 +27,7 @@ import numpy as np
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 
-from ._errors import InputError
+from .._errors import InputError
 
 EXPOSURE_PERCENTILE = 95.0
 EXPOSURE_TARGET = 0.8

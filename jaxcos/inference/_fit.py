@@ -40,9 +40,9 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
-from ._errors import InputError
-from ._material import Layer, Material, check_variant
-from ._walk import lobe_probabilities, make_query, simulate
+from .._errors import InputError
+from ..model import Layer, Material, check_variant
+from ..model import lobe_probabilities, make_query, simulate
 
 FIT_WALKS = 1024
 """Walks per incidence direction of the objective's value in a fit (the

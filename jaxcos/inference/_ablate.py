@@ -70,7 +70,7 @@ import time
 
 import numpy as np
 
-from ._errors import InputError, refuse_overwrite, staged_outputs
+from .._errors import InputError, refuse_overwrite, staged_outputs
 from ._fit import FIT_BOUNCES, fit, parameterization
 from ._kubelka_munk import (  # noqa: F401  (re-exported by jaxcos)
     KM_N_PARAMS,
@@ -83,7 +83,8 @@ from ._kubelka_munk import (  # noqa: F401  (re-exported by jaxcos)
     km_over_background,
     km_r_inf,
 )
-from ._material import material_to_dict, with_variant
+from ..io import material_to_dict
+from ..model import with_variant
 
 ABLATION_VARIANTS = ("diffusers_only", "platelets_only", "single_lobe", "two_lobe", "kubelka_munk")
 """The variants of an ablation, in the order of its table and figure."""
@@ -305,7 +306,7 @@ class AblationResult:
 
 
 def _load(item):
-    from ._measurements import Measurements, load_measurements
+    from ..io import Measurements, load_measurements
 
     if isinstance(item, Measurements):
         return item, item.path or "measurements"
@@ -526,7 +527,7 @@ def ablation_figure(result, path):
     """Save the grid of measured and fitted tables (rows: files; columns: measured, then each variant)."""
     from matplotlib.figure import Figure
 
-    from ._plot import default_exposure, draw_reflectance
+    from ..io import default_exposure, draw_reflectance
 
     n_rows, n_cols = len(result.names), 1 + len(result.variants)
     fig = Figure(figsize=(3.1 * n_cols, 2.7 * n_rows), layout="constrained")
@@ -581,7 +582,7 @@ def write_ablation(result, out_dir, *, force=False):
 
 
 def _cmd(args):
-    from ._cli import progress
+    from ..cli._main import progress
 
     variants = check_variants(args.variants)
     targets = [os.path.join(args.out, name) for name in ABLATION_FILES]

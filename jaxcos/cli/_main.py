@@ -9,7 +9,7 @@ import argparse
 import os
 import sys
 
-from ._errors import InputError, refuse_overwrite
+from .._errors import InputError, refuse_overwrite
 
 
 # --- eval ------------------------------------------------------------------------
@@ -17,14 +17,14 @@ from ._errors import InputError, refuse_overwrite
 
 def _cmd_eval(args):
     from ._eval import run_eval
-    from ._walk import resolve_budget
+    from ..model import resolve_budget
 
     args.walks, args.bounces = resolve_budget(args.budget, walks=args.walks, bounces=args.bounces)
     run_eval(args)
 
 
 def _add_budget(p, default):
-    from ._walk import BUDGETS
+    from ..model import BUDGETS
 
     named = ", ".join(f"{name} ({w} walks x {b} bounces)" for name, (w, b) in BUDGETS.items())
     p.add_argument("--budget", metavar="NAME", default=None,
@@ -52,7 +52,7 @@ def _add_eval(sub):
 
 
 def _cmd_import(args):
-    from ._measurements import import_raw, save_measurements
+    from ..io import import_raw, save_measurements
 
     refuse_overwrite([args.out], args.force)
     meas = import_raw(args.raw)
@@ -75,8 +75,8 @@ def _add_import(sub):
 
 
 def _cmd_plot(args):
-    from ._measurements import load_measurements
-    from ._plot import plot_measurements
+    from ..io import load_measurements
+    from ..io import plot_measurements
 
     refuse_overwrite([args.out], args.force)
     plot_measurements(load_measurements(args.measurements), args.out, exposure=args.exposure, overwrite=True)
@@ -113,11 +113,12 @@ def progress(command):
 
 
 def _cmd_fit(args):
-    from ._fit import FIT_BOUNCES, FIT_WALKS, fit
-    from ._material import check_variant, load_params
-    from ._measurements import load_measurements
-    from ._report import FIT_FILES, write_fit
-    from ._walk import resolve_budget
+    from ..inference import FIT_BOUNCES, FIT_WALKS, fit
+    from ..io import load_params
+    from ..model import check_variant
+    from ..io import load_measurements
+    from ..report import FIT_FILES, write_fit
+    from ..model import resolve_budget
 
     check_variant(args.variant)
     walks, bounces = resolve_budget(args.budget, walks=args.walks, bounces=args.bounces,
@@ -142,7 +143,7 @@ def _cmd_fit(args):
 
 
 def _add_fit(sub):
-    from ._fit import FIT_BOUNCES, FIT_JACOBIAN_WALKS, FIT_WALKS
+    from ..inference import FIT_BOUNCES, FIT_JACOBIAN_WALKS, FIT_WALKS
 
     p = sub.add_parser("fit", help="fit a layered material to a measurement CSV",
                        description="Fit a one-layer cosmetic material to MEASUREMENTS.csv by Levenberg-Marquardt "
@@ -188,10 +189,10 @@ _COMMANDS = [
     _add_fit,
     _add_import,
     _add_plot,
-    _from("._posterior"),
-    _from("._bench"),
-    _from("._ablate"),
-    _from("._render"),
+    _from("..inference._posterior"),
+    _from("..inference._bench"),
+    _from("..inference._ablate"),
+    _from("..render._render"),
 ]
 
 

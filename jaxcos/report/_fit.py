@@ -12,9 +12,9 @@ import os
 import numpy as np
 from matplotlib.figure import Figure
 
-from ._errors import staged_outputs
-from ._material import material_to_dict, save_params
-from ._plot import default_exposure, draw_reflectance
+from .._errors import staged_outputs
+from ..io import material_to_dict, save_params
+from ..io import default_exposure, draw_reflectance
 
 FIT_FILES = ("params.json", "report.md", "fit.png")
 DIFFERENCE_GAIN = 4.0
@@ -49,7 +49,7 @@ def _starts_legend(record):
 
 
 def _budget_name(record):
-    from ._walk import BUDGETS
+    from ..model import BUDGETS
 
     names = [n for n, budget in BUDGETS.items() if budget == (record["walks"], record["bounces"])]
     return f" (budget `{names[0]}`)" if names else ""

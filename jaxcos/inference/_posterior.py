@@ -64,9 +64,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._errors import InputError, refuse_overwrite, staged_outputs
+from .._errors import InputError, refuse_overwrite, staged_outputs
 from ._fit import FIT_BOUNCES, fit, make_problem
-from ._walk import lobe_probabilities, simulate
+from ..model import lobe_probabilities, simulate
 
 UNCERTAINTY_FILES = ("posterior.json", "report.md", "corner.png", "predictive.png", "sensitivity.png")
 
@@ -566,7 +566,7 @@ def start_from_params(meas, path, *, seed=0, progress=None):
     The fitted set of parameters (``t``, ``phi_p``) follows the file's
     ``"fit"`` record when it has one.
     """
-    from ._material import load_params
+    from ..io import load_params
 
     material = load_params(path)
     with open(path, encoding="utf-8") as fh:
@@ -729,7 +729,7 @@ def _predictive(post, meas, path, slices=4):
 def _sensitivity_maps(post, meas, path):
     from matplotlib.figure import Figure
 
-    from ._plot import _edges
+    from ..io._plot import _edges
 
     rows, cols = np.unique(meas.theta_i), np.unique(meas.theta_o)
     std = meas.std if meas.std is not None else np.full_like(meas.values, post.record["noise_scale"])
@@ -788,8 +788,8 @@ def write_uncertainty(post, meas, out_dir, *, force=False):
 
 
 def _cmd(args):
-    from ._cli import progress
-    from ._measurements import load_measurements
+    from ..cli._main import progress
+    from ..io import load_measurements
 
     say = progress("uncertainty")
 

@@ -81,9 +81,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._errors import InputError, refuse_overwrite
-from ._material import Material
-from ._walk import Query, _medium, _single_scattering, simulate
+from .._errors import InputError, refuse_overwrite
+from ..model import Material
+from ..model._walk import Query, _medium, _single_scattering, simulate
 
 SKIN_ALBEDO = (0.56, 0.28, 0.21)
 """Default base albedo, linear sRGB: the 'light skin' patch of the X-Rite
@@ -513,7 +513,7 @@ def render(material, *, key, size=256, base_albedo=SKIN_ALBEDO, walks=RENDER_WAL
     radiance = shade(table, size=int(size), environment=environment, light_radius_deg=light_radius_deg)
     if not encode:
         return radiance
-    from ._plot import encode_srgb
+    from ..io import encode_srgb
 
     return encode_srgb(radiance, exposure).astype(np.float32)
 
@@ -563,7 +563,7 @@ def _with_thickness(material, t):
 
 
 def _cmd_render(args):
-    from ._material import load_params
+    from ..io import load_params
 
     start = time.perf_counter()
     say = lambda msg: print(f"jaxcos render [{time.perf_counter() - start:5.1f} s]: {msg}", file=sys.stderr, flush=True)
@@ -591,7 +591,7 @@ def _cmd_render(args):
     table = tabulate(material, jax.random.key(args.seed), walks=args.walks, bounces=args.bounces)
     say(f"shading {args.size} x {2 * args.size} pixels")
     radiance = shade(table, size=args.size)
-    from ._plot import encode_srgb
+    from ..io import encode_srgb
 
     write_png(encode_srgb(radiance, args.exposure), out, overwrite=True)
     print(f"wrote {out}: {args.size} x {2 * args.size} pixels, sphere and grazing patch over base "

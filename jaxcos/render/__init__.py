@@ -1,0 +1,3 @@
+"""Previews: a material tabulated, shaded on a sphere and a flat patch, written as PNG."""
+
+from ._render import render
