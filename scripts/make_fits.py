@@ -3,7 +3,7 @@
 Runs ``jaxcos fit measurements/NAME.csv --out fits/NAME --force`` with the
 defaults (Levenberg-Marquardt, multi-start, seed 0) for each named product
 (default: all four). ``fits/published/`` holds the paper's published
-parameters (MODEL.md section 5) as ``params.json`` files, for comparison.
+parameters (docs/model.md section 5) as ``params.json`` files, for comparison.
 """
 
 import os

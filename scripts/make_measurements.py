@@ -3,7 +3,7 @@
     python scripts/make_measurements.py [--grid PATH] [--out DIR] [--force]
 
 writes ``dewy1.csv``, ``dewy2.csv``, ``matte1.csv``, ``matte2.csv`` and
-``dewy1_spectral.csv`` (the CSV of FORMATS.md). They are *synthetic*: the
+``dewy1_spectral.csv`` (the CSV of docs/formats.md). They are *synthetic*: the
 BSDF of the paper's published fits (``jaxcos.published(name)``, Lanza et al.
 2024 Table 2: one layer, ``t = 16``, black base, ``phi_p = 0``) simulated by
 jaxcos, plus Gaussian noise. Nothing of the real measurements goes into them
@@ -13,7 +13,7 @@ Angles: the ``(theta_i, theta_o)`` positions the real instrument measured,
 read from ``../shared/data/grid.csv`` (beside the repository; ``--grid`` to
 point elsewhere), so the data have the instrument's coverage and gaps. Its
 ``product`` column holds the Clarins product numbers, mapped as in
-``shared/data/README.md`` and MODEL.md section 5: 105 Skin Illusion 105 Nude =
+``shared/data/README.md`` and docs/model.md section 5: 105 Skin Illusion 105 Nude =
 Dewy 1, 112 Skin Illusion 112 Nude = Dewy 2, 103 Skin Illusion Velvet 103 Nude
 = Matte 1, 108 Skin Illusion Velvet 108 = Matte 2.
 

@@ -30,7 +30,7 @@ from jaxcos.io._measurements import Measurements
 # --- structure ---------------------------------------------------------------------------
 
 COUNTS = {"diffusers_only": 6, "platelets_only": 5, "single_lobe": 10, "two_lobe": 12, "kubelka_munk": 8}
-# Parameters each Monte Carlo variant switches off (FORMATS.md: c_d = 1, c_d = 0, w_g = 1).
+# Parameters each Monte Carlo variant switches off (docs/formats.md: c_d = 1, c_d = 0, w_g = 1).
 SWITCHED_OFF = {
     "diffusers_only": ("c_d", "albedo_p", "alpha_p", "theta_p"),
     "platelets_only": ("c_d", "albedo_d", "g1", "g2", "w_g"),
@@ -101,10 +101,10 @@ def test_starts_for_reduced_and_nesting_variants():
     up = embed(single, "two_lobe", two)
     assert up.variant == "two_lobe" and float(up.layers[0].w_g) == 0.5
     assert float(up.layers[0].g2) == float(up.layers[0].g1) == float(single.layers[0].g1)
-    from jaxcos.model._walk import _single_scattering, _medium
+    from jaxcos.model._walk import single_scattering, stack_medium
 
-    np.testing.assert_allclose(_single_scattering(_medium(up), None, query.wi, query.wo),
-                               _single_scattering(_medium(single), None, query.wi, query.wo), rtol=1e-6)
+    np.testing.assert_allclose(single_scattering(stack_medium(up), None, query.wi, query.wo),
+                               single_scattering(stack_medium(single), None, query.wi, query.wo), rtol=1e-6)
     plate = start_from_two_lobe(two, "platelets_only")
     assert float(embed(plate, "single_lobe", single).layers[0].c_d) == pytest.approx(0.03)
 

@@ -1,7 +1,7 @@
 """Tests of ``jaxcos.model._phase``: Henyey-Greenstein and SGGX specular phase functions and samplers.
 
 The code under test runs in float32 (the JAX default). Reference values and all
-quadratures are float64 numpy. The four groups follow MODEL.md sections 2 and 7:
+quadratures are float64 numpy. The four groups follow docs/model.md sections 2 and 7:
 
 1. Normalisation by deterministic quadrature (HG, the two-lobe mixture, the
    SGGX specular phase function, the SGGX projected-area identity).
@@ -198,7 +198,7 @@ def _unit(v):
 
 
 def _w_incident(theta_i_deg):
-    """Propagation direction of light arriving from ``wi = (-sin ti, 0, cos ti)`` (MODEL.md section 1)."""
+    """Propagation direction of light arriving from ``wi = (-sin ti, 0, cos ti)`` (docs/model.md section 1)."""
     t = np.deg2rad(theta_i_deg)
     return np.array([np.sin(t), 0.0, -np.cos(t)])
 
@@ -937,7 +937,7 @@ def test_cosine_and_uniform_sphere_hard_cases():
 
 
 def test_mean_normal_convention():
-    """``m = (sin tp cos pp, sin tp sin pp, cos tp)`` (MODEL.md section 2); ``phi_p = 90`` tilts towards +y."""
+    """``m = (sin tp cos pp, sin tp sin pp, cos tp)`` (docs/model.md section 2); ``phi_p = 90`` tilts towards +y."""
     for tp, pp in [(0.0, 0.0), (5.5, 0.0), (52.2, 90.0), (30.0, 45.0)]:
         t, p = np.deg2rad(tp), np.deg2rad(pp)
         ref = [np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)]

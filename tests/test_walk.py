@@ -10,7 +10,7 @@ shared between calls so each program is compiled once.
 
 References used:
 
-* an independent float64 NumPy implementation of MODEL.md section 4's closed
+* an independent float64 NumPy implementation of docs/model.md section 4's closed
   form for single scattering (``_first_order_reference``);
 * the exact energy bookkeeping of a conservative medium (albedos 1, black base);
 * reciprocity ``f(wi, wo) = f(wo, wi)`` and the mirror symmetry x -> -x;
@@ -33,7 +33,7 @@ from scipy import stats
 import jaxcos
 from jaxcos import Layer, Material
 
-# the published fits as Layer keyword arguments (MODEL.md section 5, paper Table 2)
+# the published fits as Layer keyword arguments (docs/model.md section 5, paper Table 2)
 _PUB = jaxcos.model._material._PUBLISHED
 
 _LAYER_FIELDS = ("t", "c_d", "albedo_d", "g1", "g2", "w_g", "albedo_p", "alpha_p", "theta_p", "phi_p")
@@ -70,7 +70,7 @@ def _cross2_np(a, m):
 
 
 def _first_order_reference(material, ti, to, po):
-    """MODEL.md section 4, float64, written from the spec (not from the package's code).
+    """docs/model.md section 4, float64, written from the spec (not from the package's code).
 
     ``f_1 = sum_layers exp(-tau above) sigma_s f(-wi -> wo) (1 - exp(-t rate)) / (sigma_t(-wi) mu_o + sigma_t(wo) mu_i)``
     with ``rate = sigma_t(-wi) / mu_i + sigma_t(wo) / mu_o``, plus ``exp(-tau of the stack) rho / pi``
@@ -148,7 +148,7 @@ def test_first_order_walk_matches_closed_form():
     """``mc`` with one bounce (the walks' first-order NEE) vs ``exact`` with one bounce (the closed form).
 
     The closed form is itself checked against an independent float64 NumPy
-    implementation of MODEL.md section 4 (to float32 rounding). The walks'
+    implementation of docs/model.md section 4 (to float32 rounding). The walks'
     estimate is tested twice, both tests valid under any correlation between
     points (the pairs of one incidence share walks):
 
@@ -909,12 +909,12 @@ def test_directions_drawn_from_another_material_are_unbiased():
 @pytest.mark.parametrize("mis", [False, True])
 def test_first_walks_of_a_batch_are_the_smaller_batch(mis):
     """A walk's random numbers do not depend on the batch size (the fit's Jacobian uses the first walks)."""
-    from jaxcos.model._walk import _medium, _walk_one
+    from jaxcos.model._walk import stack_medium, _walk_one
 
     material = jaxcos.published("dewy1")
     query = jaxcos.make_query([30.0, 30.0], [-20.0, 40.0])
     seed = jax.random.bits(jax.random.key(3), (2,), jnp.uint32)
-    run = lambda walks: _walk_one(_medium(material), None, jaxcos.lobe_probabilities(material), query.wi[0],
+    run = lambda walks: _walk_one(stack_medium(material), None, jaxcos.lobe_probabilities(material), query.wi[0],
                                   query.wo[0], seed, walks, 16, True, None, mis)
     small, large = run(8), run(32)
     for a, b in zip(small, large):  # same numbers; float32 rounding of differently vectorised code differs

@@ -35,7 +35,7 @@ def _add_eval(sub):
     p = sub.add_parser("eval", help="evaluate the BSDF of a params.json at given angles",
                        description="Evaluate the BSDF of PARAMS at the theta_i,theta_o[,phi_o] rows of ANGLES.csv; "
                        "writes OUT.csv with r,g,b and their Monte Carlo standard errors r_std,g_std,b_std.")
-    p.add_argument("params", metavar="PARAMS", help="params.json (FORMATS.md)")
+    p.add_argument("params", metavar="PARAMS", help="params.json (docs/formats.md)")
     p.add_argument("--angles", required=True, metavar="ANGLES.csv", help="CSV with columns theta_i,theta_o[,phi_o] in degrees")
     p.add_argument("--out", required=True, metavar="OUT.csv")
     p.add_argument("--walks", type=int, default=None, help="walks per incidence direction (default: the library default)")
@@ -64,7 +64,7 @@ def _add_import(sub):
     p = sub.add_parser("import", help="convert a raw spectral instrument file to a measurement CSV",
                        description="Read a raw tab-separated gonioreflectometer file (theta_i, theta_o and 81 "
                        "reflectance factors at 380, 385, ..., 780 nm per row), convert the spectra to linear sRGB "
-                       "(CIE 1931 2 degree observer, D65) and write the measurement CSV of FORMATS.md.")
+                       "(CIE 1931 2 degree observer, D65) and write the measurement CSV of docs/formats.md.")
     p.add_argument("raw", metavar="RAW.txt", help="raw tab-separated instrument file")
     p.add_argument("--out", required=True, metavar="FILE.csv")
     p.add_argument("--force", action="store_true", help="overwrite FILE.csv if it exists")
@@ -88,7 +88,7 @@ def _add_plot(sub):
                        description="Draw the in-plane points of MEASUREMENTS.csv as a table like Figure 4 of "
                        "Lanza et al. 2024: theta_o across, theta_i down, each cell the reflectance factor in sRGB "
                        "at a stated exposure, black where there is no data.")
-    p.add_argument("measurements", metavar="MEASUREMENTS.csv", help="measurement CSV (FORMATS.md)")
+    p.add_argument("measurements", metavar="MEASUREMENTS.csv", help="measurement CSV (docs/formats.md)")
     p.add_argument("--out", required=True, metavar="FIG.png")
     p.add_argument("--exposure", type=float, default=None,
                    help="factor applied to the reflectance factor before sRGB encoding "

@@ -103,7 +103,7 @@ POOR_FIT = 5.0
 """A file whose best reduced chi-square exceeds this gets a warning in the report."""
 CSV_COLUMNS = ("file", "variant", "l2", "rmse", "delta_e2000", "n_params", "aic", "bic", "time_s", "chi2",
                "reduced_chi2", "n_points", "loss", "start", "walks", "bounces", "seed")
-"""Columns of ``ablation.csv`` (FORMATS.md requires the first nine)."""
+"""Columns of ``ablation.csv`` (docs/formats.md requires the first nine)."""
 
 
 # --- variants ---------------------------------------------------------------------------
@@ -325,13 +325,13 @@ def _load_average():
 
 def _real(result, meas):
     """A fit of a padded file cut back to the file's real points (they come first), its statistics redone."""
-    from ._fit import _statistics
+    from ._fit import fit_statistics
 
     n = meas.n_points
     if result.model.shape[0] == n:
         return result
     record = dict(result.record)
-    record.update(_statistics(meas, result.model[:n], record["loss"], record["n_params"]))
+    record.update(fit_statistics(meas, result.model[:n], record["loss"], record["n_params"]))
     cut = dict(model=result.model[:n])
     if hasattr(result, "model_std"):
         cut["model_std"] = result.model_std[:n]

@@ -581,7 +581,7 @@ def highlight_tilt(meas):
     """The platelet tilt ``theta_p`` (degrees) that the measured highlight points to, or ``None``.
 
     Mirror-like platelets tilted by ``theta_p`` in the plane of incidence
-    reflect at ``theta_o = theta_i + 2 theta_p`` (MODEL.md section 2). For each
+    reflect at ``theta_o = theta_i + 2 theta_p`` (docs/model.md section 2). For each
     incidence with at least five in-plane points, its brightest point (mean of
     r, g, b) gives one estimate; the result is their median.
     A narrow highlight (``alpha_p`` of a few thousandths) is invisible to a
@@ -661,7 +661,7 @@ class FitResult:
 
     Attributes:
         material: the fitted material.
-        record: the ``"fit"`` record of FORMATS.md (plus extra keys).
+        record: the ``"fit"`` record of docs/formats.md (plus extra keys).
         model: ``(N, 3)`` the fitted model in the file's quantity.
         model_std: ``(N, 3)`` its Monte Carlo standard error.
         starts: per refined start, ``(label, loss, material_chi2, material_chi2_se)`` (the last two
@@ -851,7 +851,7 @@ def _l2_rmse(resid):
     return dict(l2=float(np.sum(resid ** 2)), rmse=float(np.sqrt(np.mean(resid ** 2))))
 
 
-def _statistics(meas, model, loss, n_free):
+def fit_statistics(meas, model, loss, n_free):
     resid = model - meas.values
     n = resid.size
     dof = max(n - n_free, 1)
@@ -1019,7 +1019,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     model = np.asarray(problem.scale * est.f)
     model_std = np.asarray(problem.scale * est.stderr)
     elapsed = time.perf_counter() - t0
-    record = _statistics(meas, model, loss, param.size)
+    record = fit_statistics(meas, model, loss, param.size)
     record.update(
         iterations=int(steps), time_s=round(elapsed, 2), method=method, variant=variant,
         n_evaluations=int(round(n_eval)), walks=int(walks), bounces=int(bounces), jacobian_walks=jacobian_walks,

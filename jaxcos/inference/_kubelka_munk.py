@@ -1,4 +1,4 @@
-"""The Kubelka-Munk baseline of Huang et al. 2013 (MODEL.md section 6), differentiable and fitted by LM.
+"""The Kubelka-Munk baseline of Huang et al. 2013 (docs/model.md section 6), differentiable and fitted by LM.
 
 A cosmetic layer is a Kubelka-Munk (two-flux) slab with scattering ``S`` and
 absorption ``K`` per unit length (per colour channel) and thickness ``X`` in
@@ -24,7 +24,7 @@ Kelemen's approximation of the shadowing term). The BSDF is
 ``f = R / pi + f_spec`` in 1/sr, RGB on the last axis; like Huang et al. the
 two terms are added (no energy coupling between them).
 
-Directions follow MODEL.md section 1: ``wi = (-sin ti, 0, cos ti)``,
+Directions follow docs/model.md section 1: ``wi = (-sin ti, 0, cos ti)``,
 ``wo = (sin to cos po, sin to sin po, cos to)``, angles in degrees; ``to = ti``
 is the mirror direction and ``to < 0`` the light's side.
 
@@ -103,7 +103,7 @@ def _layer_optical(sigma, kappa):
 
 
 def km_layer(scattering, absorption, thickness):
-    """Kubelka-Munk reflectance ``R0`` and transmittance ``T`` of a layer alone (MODEL.md section 6).
+    """Kubelka-Munk reflectance ``R0`` and transmittance ``T`` of a layer alone (docs/model.md section 6).
 
     Args:
         scattering: ``S >= 0`` per unit length (any shape; RGB on the last axis by convention).
@@ -191,7 +191,7 @@ def _r_inf_to_ratio(r_inf):
 
 
 def directions(theta_i_deg, theta_o_deg, phi_o_deg=None):
-    """Unit vectors ``(wi, wo)``, ``(N, 3)`` each, of the in-plane convention of MODEL.md section 1."""
+    """Unit vectors ``(wi, wo)``, ``(N, 3)`` each, of the in-plane convention of docs/model.md section 1."""
     ti = jnp.deg2rad(_asarray(theta_i_deg))
     to = jnp.deg2rad(_asarray(theta_o_deg))
     po = jnp.zeros_like(to) if phi_o_deg is None else jnp.deg2rad(_asarray(phi_o_deg))
@@ -286,7 +286,7 @@ class KubelkaMunk(eqx.Module):
         return self.diffuse_reflectance() / jnp.pi + spec[..., None]
 
     def bsdf(self, theta_i_deg, theta_o_deg, phi_o_deg=None):
-        """The BSDF ``f`` in 1/sr, ``(N, 3)`` linear RGB, at angle pairs in degrees (MODEL.md section 1).
+        """The BSDF ``f`` in 1/sr, ``(N, 3)`` linear RGB, at angle pairs in degrees (docs/model.md section 1).
 
         Example::
 
@@ -438,7 +438,7 @@ def fit_kubelka_munk(meas, *, seed=0, starts=15, substrate=0.0, max_steps=200, p
     Returns:
         A :class:`KMFitResult`.
     """
-    from ._fit import _statistics
+    from ._fit import fit_statistics
 
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
@@ -450,7 +450,7 @@ def fit_kubelka_munk(meas, *, seed=0, starts=15, substrate=0.0, max_steps=200, p
     best = int(np.argmin(losses))
     x, loss = xs[best], float(losses[best])
     model = np.asarray(problem.model(x), dtype=float)
-    record = _statistics(meas, model, loss, KM_N_PARAMS)
+    record = fit_statistics(meas, model, loss, KM_N_PARAMS)
     params = problem.material(x)
     same = int(np.sum(np.abs(losses - loss) <= 1e-3 * loss + 1.0))
     record.update(

@@ -1,7 +1,7 @@
-"""Measurements: the CSV of FORMATS.md, the raw instrument format, spectral to sRGB.
+"""Measurements: the CSV of docs/formats.md, the raw instrument format, spectral to sRGB.
 
 A :class:`Measurements` holds in-plane (or out-of-plane) gonioreflectometer
-points in the angle convention of MODEL.md section 1 (degrees; ``theta_o < 0``
+points in the angle convention of docs/model.md section 1 (degrees; ``theta_o < 0``
 on the light's side) with linear sRGB values in the file's quantity.
 
 Example::
@@ -11,7 +11,7 @@ Example::
     meas.n_points, meas.quantity      # (147, 'reflectance_factor')
     meas.brdf                         # f in 1/sr, shape (N, 3)
 
-Reading rules (beyond FORMATS.md):
+Reading rules (beyond docs/formats.md):
 
 - ``#`` lines before the header are metadata ``key: value`` pairs, kept in
   order; a ``#`` line without a colon, and any ``#`` line after the header, is
@@ -278,11 +278,11 @@ def _suggestion(name):
     return f" (did you mean '{close[0]}'?)" if close else ""
 
 
-# --- the CSV of FORMATS.md ---------------------------------------------------------------
+# --- the CSV of docs/formats.md ---------------------------------------------------------------
 
 
 def load_measurements(path):
-    """Read a measurement CSV (FORMATS.md) into :class:`Measurements`.
+    """Read a measurement CSV (docs/formats.md) into :class:`Measurements`.
 
     Spectral columns are converted with :func:`spectral_to_srgb` under the
     ``# illuminant:`` of the metadata (default D65). The values stay in the
@@ -293,7 +293,7 @@ def load_measurements(path):
         InputError: one sentence naming the file, the line and the problem.
     """
     path = os.fspath(path)
-    what = "a measurement CSV (FORMATS.md)"
+    what = "a measurement CSV (docs/formats.md)"
     lines = _read_lines(path, what)
     metadata, meta_lines, header_line, header = _split_header(path, lines)
     columns = _check_columns(path, header_line, header)
@@ -389,7 +389,7 @@ def _split_header(path, lines):
             raise InputError(f"{_where(path, line)}: the header has no commas; columns must be comma-separated, "
                              f"e.g. theta_i,theta_o,r,g,b.")
         return metadata, meta_lines, line, fields
-    raise InputError(f"{path}: no header row, only metadata lines; expected a measurement CSV (FORMATS.md).")
+    raise InputError(f"{path}: no header row, only metadata lines; expected a measurement CSV (docs/formats.md).")
 
 
 def _check_columns(path, line, header):
@@ -540,7 +540,7 @@ def _format(x):
 
 
 def save_measurements(meas, path, *, overwrite=False):
-    """Write ``meas`` as the CSV of FORMATS.md (linear sRGB, in ``meas.quantity``).
+    """Write ``meas`` as the CSV of docs/formats.md (linear sRGB, in ``meas.quantity``).
 
     The metadata come first, ``# quantity:`` leading; ``phi_o`` is written only
     when a point is out of the plane, the std columns only when ``meas.std``
@@ -627,7 +627,7 @@ def load_angles(path):
 
 
 def write_evaluation(path, theta_i, theta_o, phi_o, values, std, *, quantity, overwrite=False):
-    """Write the rows of ``jaxcos eval`` (FORMATS.md) atomically; an existing file is kept unless ``overwrite``."""
+    """Write the rows of ``jaxcos eval`` (docs/formats.md) atomically; an existing file is kept unless ``overwrite``."""
     path = os.fspath(path)
     refuse_overwrite([path], overwrite)
     with_phi = bool(np.any(phi_o != 0))

@@ -54,7 +54,7 @@ def _value(path, where, key, value, kind, *bounds):
 
 
 def material_from_dict(data, path="params.json"):
-    """Build a :class:`Material` from the parsed JSON of FORMATS.md; ``path`` names it in errors."""
+    """Build a :class:`Material` from the parsed JSON of docs/formats.md; ``path`` names it in errors."""
     if not isinstance(data, dict):
         raise InputError(f"{path}: the top level must be a JSON object with 'layers' and 'base'.")
     variant = data.get("variant", "two_lobe")
@@ -98,7 +98,7 @@ def material_from_dict(data, path="params.json"):
 
 
 def material_to_dict(material):
-    """The JSON-ready dictionary of FORMATS.md for ``material``."""
+    """The JSON-ready dictionary of docs/formats.md for ``material``."""
 
     def num(x):
         return float(x)
@@ -121,7 +121,7 @@ def material_to_dict(material):
 
 
 def load_params(path):
-    """Read a ``params.json`` (FORMATS.md) into a :class:`Material`, validating every field.
+    """Read a ``params.json`` (docs/formats.md) into a :class:`Material`, validating every field.
 
     Raises:
         InputError: with one sentence naming the file and the problem.

@@ -15,4 +15,6 @@ from ._walk import (
     make_query,
     resolve_budget,
     simulate,
+    single_scattering,
+    stack_medium,
 )

@@ -1,7 +1,7 @@
 """Materials: cosmetic layers, stacks, bases and variants.
 
 A :class:`Material` is a pytree. Its array leaves are the physical parameters
-of MODEL.md section 2 (differentiable); its structure (number of layers, base
+of docs/model.md section 2 (differentiable); its structure (number of layers, base
 type, model variant) is static and decides at trace time which effects the
 simulation contains.
 
@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from .._errors import InputError
 
 VARIANTS = ("two_lobe", "single_lobe", "diffusers_only", "platelets_only")
-"""Model variants (FORMATS.md): the parts of the model each switches off are
+"""Model variants (docs/formats.md): the parts of the model each switches off are
 not simulated at all."""
 
 FIXED = {
@@ -39,7 +39,7 @@ def _rgb(x):
 
 
 class Layer(eqx.Module):
-    """One index-matched slab of diffusers and platelets (MODEL.md section 2).
+    """One index-matched slab of diffusers and platelets (docs/model.md section 2).
 
     Attributes:
         t: optical thickness in mean free paths of ``sigma_base = 1``, ``>= 0``.
@@ -121,7 +121,7 @@ def with_variant(material, variant):
     return Material(layers=layers, base_albedo=material.base_albedo, variant=variant)
 
 
-# --- the published fits (MODEL.md section 5) -----------------------------------
+# --- the published fits (docs/model.md section 5) -----------------------------------
 
 _PUBLISHED = {
     "dewy1": dict(alpha_p=0.13, theta_p=1.47, albedo_p=(0.75, 0.85, 0.99), c_d=0.90,

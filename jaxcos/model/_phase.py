@@ -1,6 +1,6 @@
 """Phase functions and their samplers: Henyey-Greenstein and SGGX specular flakes.
 
-Conventions (MODEL.md sections 1, 2 and 7):
+Conventions (docs/model.md sections 1, 2 and 7):
 
 * Directions are unit 3-vectors on the last axis, ``(..., 3)``. A phase function
   ``f(w -> w')`` takes *propagation* directions: ``w`` is where light travels
@@ -170,7 +170,7 @@ def sggx_ndf(n, m, alpha):
     """SGGX normal distribution ``D(n)`` in 1/sr, normalised so that ``int <w, n>+ D(n) dn = sigma_S(w)``.
 
     ``D(n) = alpha^2 / (pi (|n x m|^2 + alpha^2 (n.m)^2)^2)``, the form of
-    MODEL.md section 7 multiplied through by ``alpha^4``; its peak
+    docs/model.md section 7 multiplied through by ``alpha^4``; its peak
     ``1 / (pi alpha^2)`` (8e4 at ``alpha = 0.002``) is exact in float32.
     """
     nm = dot(n, m)
@@ -182,7 +182,7 @@ def flake_reflection(w, w_out, m, alpha):
     """``sigma_S(w) f_p(w -> w') = D(h) / 4`` in 1/sr, ``h = normalize(w' - w)``.
 
     The specular phase function times the projected area, the form in which
-    it enters the collision weight (MODEL.md eq. 8), cheaper than
+    it enters the collision weight (docs/model.md eq. 8), cheaper than
     :func:`specular_phase` by a square root and a division. ``D`` is
     homogeneous of degree -4, so it is evaluated on the unnormalised
     ``d = w' - w``: ``D(h) = alpha^2 |d|^4 / (pi (|d x m|^2 + alpha^2 (d.m)^2)^2)``.

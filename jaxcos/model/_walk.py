@@ -3,7 +3,7 @@
 One walk starts along ``-wi`` at the top of the stack and makes ``bounces``
 steps of a fixed-length :func:`jax.lax.scan`; each step is a free flight and a
 scattering event. At every event the walk connects to *all* outgoing
-directions of its incidence at once (next-event estimation, MODEL.md
+directions of its incidence at once (next-event estimation, docs/model.md
 section 4), so one batch of walks per incidence serves every ``wo``.
 
 Derivatives (``jax.grad``, ``jax.jvp``, ``jax.jacfwd``) are unbiased because
@@ -126,7 +126,7 @@ def _direction_out(theta_deg, phi_deg):
 
 
 def make_query(theta_i_deg, theta_o_deg, phi_o_deg=None):
-    """Group angle pairs (degrees, MODEL.md section 1 convention) by incidence.
+    """Group angle pairs (degrees, docs/model.md section 1 convention) by incidence.
 
     With concrete angles, pairs sharing a ``theta_i`` share one batch of walks.
     With traced angles (inside ``jit``) grouping is impossible and each pair
@@ -212,7 +212,7 @@ class _Medium(eqx.Module):
         return f_d, f_p
 
     def prefactors(self, sig_t):
-        """RGB factors ``(k_d, k_p)`` with ``W(w -> w') = k_d f_d + k_p sigma_S(w) f_p`` (MODEL.md eq. 8).
+        """RGB factors ``(k_d, k_p)`` with ``W(w -> w') = k_d f_d + k_p sigma_S(w) f_p`` (docs/model.md eq. 8).
 
         ``k_d = albedo_d c_d / sigma_t(w)``, ``k_p = albedo_p (1 - c_d) / sigma_t(w)``;
         ``sig_t``: the extinction along ``w``.
@@ -247,7 +247,7 @@ def _combine(lobes, factors):
     return sum(f[..., None] * k for f, k in zip(lobes, factors) if f is not None)
 
 
-def _medium(material):
+def stack_medium(material):
     layers = material.layers
     stack = lambda name: jnp.stack([jnp.asarray(getattr(l, name)) for l in layers])
     t = stack("t")
@@ -383,7 +383,7 @@ def lobe_probabilities(material):
     smooth function of the parameters; recomputing them from each material
     gives lower variance but small jumps.
     """
-    med = _medium(jax.lax.stop_gradient(material))
+    med = stack_medium(jax.lax.stop_gradient(material))
     lam_d = med.c_d * jnp.mean(med.albedo_d, axis=-1)
     lam = jnp.stack([
         lam_d * med.w_g if med.diffusers else jnp.zeros_like(lam_d),
@@ -624,8 +624,8 @@ def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref
 # --- the exact single-scattering term ------------------------------------------------
 
 
-def _single_scattering(med, base_albedo, wi, wo):
-    """First-order BSDF ``(I, J, 3)`` in closed form (MODEL.md section 4), all layers.
+def single_scattering(med, base_albedo, wi, wo):
+    """First-order BSDF ``(I, J, 3)`` in closed form (docs/model.md section 4), all layers.
 
     The light of order one: scattered once in some layer, attenuated on the
     way in and out, plus, over a Lambertian base, the base seen through the
@@ -725,11 +725,11 @@ def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNC
         raise ValueError(f"single_scattering must be 'exact' or 'mc', not {single_scattering!r}")
     if connection not in ("mis", "nee"):
         raise ValueError(f"connection must be 'mis' or 'nee', not {connection!r}")
-    med = _medium(material)
+    med = stack_medium(material)
     q = lobe_probabilities(material) if lobe_probs is None else jax.lax.stop_gradient(jnp.asarray(lobe_probs))
     exact = single_scattering == "exact"
     seeds = jax.random.bits(key, (query.wi.shape[0], 2), jnp.uint32)
-    ref = None if sampling is None else _medium(jax.lax.stop_gradient(sampling))
+    ref = None if sampling is None else stack_medium(jax.lax.stop_gradient(sampling))
     if ref is not None and (ref.diffusers, ref.platelets, ref.two_lobes, ref.n_layers) != (
             med.diffusers, med.platelets, med.two_lobes, med.n_layers):
         raise ValueError("sampling must have the variant and the number of layers of material.")
@@ -743,7 +743,7 @@ def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNC
     f = jnp.mean(acc, axis=1)
     stderr = jnp.std(acc, axis=1, ddof=1) / jnp.sqrt(walks) if walks > 1 else jnp.full_like(f, jnp.inf)
     if exact:
-        f = f + _single_scattering(med, material.base_albedo, query.wi, query.wo)
+        f = f + single_scattering(med, material.base_albedo, query.wi, query.wo)
     pick = lambda a: a[query.pair_i, query.pair_j]
     return Estimate(
         f=pick(f),
@@ -758,7 +758,7 @@ def inplane_bsdf(material, theta_i_deg, theta_o_deg, key, *, walks=DEFAULT_WALKS
                  phi_o_deg=None, single_scattering="exact", connection="nee"):
     """The BSDF ``f(wi, wo)`` in 1/sr, linear RGB, shape ``(N, 3)``, at ``N`` angle pairs.
 
-    Angles in degrees, gonioreflectometer convention (MODEL.md section 1):
+    Angles in degrees, gonioreflectometer convention (docs/model.md section 1):
     ``wi = (-sin ti, 0, cos ti)``, ``wo = (sin to cos po, sin to sin po, cos to)``;
     ``to = ti`` is the mirror direction. Jittable, and differentiable with
     respect to every array leaf of ``material``.

@@ -28,7 +28,7 @@ colour-science, clipped to ``[0, 1]``.
 **How the BSDF is evaluated per pixel** (no Monte Carlo per pixel):
 
 * the first scattering order (and the base seen through the layers) is the
-  closed form of MODEL.md section 4, exact at every pixel, so sharp platelet
+  closed form of docs/model.md section 4, exact at every pixel, so sharp platelet
   highlights are not blurred by a grid. The light has an angular radius
   (:data:`LIGHT_RADIUS_DEG`, 3 degrees) whose disc is sampled at fixed points
   for this term, so a near-mirror highlight shows as a small spot instead of
@@ -62,7 +62,7 @@ honest (both affect only the orders two and up):
   stays exact;
 * **despeckling**: a table node brighter than twice the median of its eight
   neighbours over ``wo`` is clamped to that bound. Such a node is a rare
-  walk of high weight, not a feature (MODEL.md section 7).
+  walk of high weight, not a feature (docs/model.md section 7).
 
 Example::
 
@@ -83,7 +83,7 @@ import numpy as np
 
 from .._errors import InputError, refuse_overwrite
 from ..model import Material
-from ..model._walk import Query, _medium, _single_scattering, simulate
+from ..model import Query, simulate, single_scattering, stack_medium
 
 SKIN_ALBEDO = (0.56, 0.28, 0.21)
 """Default base albedo, linear sRGB: the 'light skin' patch of the X-Rite
@@ -130,7 +130,7 @@ class BSDFTable(eqx.Module):
 
     Build it with :func:`tabulate`. Directions are unit vectors in the local
     frame of the surface (normal ``+z``, tangent ``+x``, from which ``phi_p``
-    is measured), both pointing away from the surface (MODEL.md section 1).
+    is measured), both pointing away from the surface (docs/model.md section 1).
 
     Attributes:
         material: the material (with its base) the table describes.
@@ -192,7 +192,7 @@ class BSDFTable(eqx.Module):
         shape = jnp.broadcast_shapes(wi.shape, wo.shape)
         wi = jnp.broadcast_to(wi, shape).reshape(-1, 3)
         wo = jnp.broadcast_to(wo, shape).reshape(-1, 3)
-        f = _single_scattering(_medium(self.material), self.material.base_albedo, wi, wo[:, None, :])[:, 0]
+        f = single_scattering(stack_medium(self.material), self.material.base_albedo, wi, wo[:, None, :])[:, 0]
         return f.reshape(shape)
 
     @eqx.filter_jit
@@ -266,7 +266,7 @@ def _despeckle(values, limit):
     neighbours (periodic in ``phi_o``, held at the ends of ``theta_o``) is
     scaled down to that bound. Orders two and up of the BSDF vary on scales
     wider than the grid, so such a spike is a rare walk of high weight (NEE
-    through near-mirror platelets, MODEL.md section 7), not a feature.
+    through near-mirror platelets, docs/model.md section 7), not a feature.
     """
     y = values @ jnp.array([0.2126, 0.7152, 0.0722], values.dtype)
     padded = jnp.concatenate([y[..., :1, :], y, y[..., -1:, :]], axis=-2)
@@ -295,7 +295,7 @@ def _table(material, key, theta_deg, phi_i_deg, phi_o_deg, walks, bounces):
     t, p = jnp.meshgrid(th, jnp.deg2rad(phi_o_deg), indexing="ij")
     wo = jnp.stack([jnp.sin(t) * jnp.cos(p), jnp.sin(t) * jnp.sin(p), jnp.cos(t)], axis=-1).reshape(-1, 3)
     n_out = wo.shape[0]
-    first = jax.vmap(lambda w: _single_scattering(_medium(material), material.base_albedo, w[None], wo[None])[0])
+    first = jax.vmap(lambda w: single_scattering(stack_medium(material), material.base_albedo, w[None], wo[None])[0])
 
     def incidence(w):  # one key for every incidence: common random numbers over the grid
         query = Query(w[None], wo[None], jnp.zeros(n_out, jnp.int32), jnp.arange(n_out))
@@ -605,7 +605,7 @@ def add_command(sub):
                        "is replaced) on a sphere and on a flat patch at grazing light, lit by a directional light and "
                        "a dim uniform environment. Each panel is SIZE x SIZE pixels; the image is SIZE x 2 SIZE, "
                        "sRGB at a stated exposure (a white Lambertian surface facing the light has radiance 1).")
-    p.add_argument("params", metavar="PARAMS", help="params.json (FORMATS.md)")
+    p.add_argument("params", metavar="PARAMS", help="params.json (docs/formats.md)")
     p.add_argument("--out", required=True, metavar="IMAGE.png")
     p.add_argument("--base-albedo", metavar="R,G,B", default=None,
                    help="linear sRGB albedo of the base (default %s, the ColorChecker's light skin)"
