@@ -189,10 +189,10 @@ _COMMANDS = [
     _add_fit,
     _add_import,
     _add_plot,
-    _from("..inference._posterior"),
-    _from("..inference._bench"),
-    _from("..inference._ablate"),
-    _from("..render._render"),
+    _from("._posterior"),
+    _from("._bench"),
+    _from("._ablate"),
+    _from("._render"),
 ]
 
 

@@ -1,0 +1,1 @@
+from ..render._render import add_command  # noqa: F401  (temporary: moved here by the split)
