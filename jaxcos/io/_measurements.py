@@ -130,6 +130,34 @@ class Measurements:
         )
 
     @property
+    def scale(self):
+        """The factor turning a BSDF ``f`` (1/sr) into this table's quantity: ``pi`` for a reflectance factor, else 1."""
+        return 1.0 / _to_brdf(self.quantity)
+
+    def with_noise(self, relative, absolute=0.0):
+        """The same table with the noise model ``std = relative * |value| + absolute`` (per point and channel).
+
+        For a file without std columns: the fit then weighs every point by its
+        size instead of minimising the plain L2. ``relative`` and ``absolute``
+        are in the table's quantity (absolute) or dimensionless (relative);
+        at least one must be positive, neither negative.
+
+        Raises:
+            InputError: if the table has std columns already or the levels are invalid.
+        """
+        name = self.path or "the measurements"
+        if self.std is not None:
+            raise InputError(f"{name}: the file has std columns; a noise model is only for files without them.")
+        if not (math.isfinite(relative) and math.isfinite(absolute)) or relative < 0 or absolute < 0 \
+                or relative + absolute <= 0:
+            raise InputError(f"noise levels must be non-negative and not both zero, not {relative:g},{absolute:g}.")
+        std = relative * np.abs(self.values) + absolute
+        if np.any(std <= 0):
+            raise InputError(f"{name}: the noise model {relative:g},{absolute:g} gives a zero std where a value is 0; "
+                             "add an absolute level.")
+        return dataclasses.replace(self, std=std, metadata={**self.metadata, "noise": f"{relative:g} * value + {absolute:g}"})
+
+    @property
     def brdf(self):
         """The BSDF ``f`` in 1/sr, shape ``(N, 3)`` (``values / pi`` for a reflectance factor)."""
         return self.to_quantity("brdf").values
