@@ -3,7 +3,7 @@
     python benchmarks/bench_uncertainty.py coverage [--replicates 20] [--hi-walks 8192]
     python benchmarks/bench_uncertainty.py report [--data measurements/matte2.csv]
 
-Writes ``benchmarks/results/uncertainty_coverage.json`` or ``uncertainty_report.json``.
+Writes ``benchmarks/results/uncertainty_coverage_hi<N>.json`` or ``uncertainty_report.json``.
 
 Coverage: the single-lobe problem of ``tests/test_posterior.py`` (4 incidences x
 13 viewing angles, 10 parameters, 5% + 0.005 noise on the truth's curve from
@@ -29,7 +29,6 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 
 import jaxcos  # noqa: E402
-from jaxcos.inference._posterior import uncertainty  # noqa: E402
 
 
 def _machine():
@@ -40,7 +39,7 @@ def _machine():
 TRUTH_WALKS = 1 << 18
 
 
-def coverage(replicates, hi_walks, lo_walks):
+def coverage(replicates, hi_walks):
     from test_posterior import TRUTH, _synthetic
 
     rows = []
@@ -48,8 +47,8 @@ def coverage(replicates, hi_walks, lo_walks):
     for r in range(replicates):
         data = _synthetic(seed=100 + r, walks=TRUTH_WALKS)
         start = jaxcos.fit(data, variant="single_lobe", walks=128, bounces=48, start=TRUTH, seed=r)
-        post = uncertainty(data, start, seed=r, walkers=24, max_steps=1000, lo_walks=lo_walks, lo_bounces=48,
-                           hi_walks=hi_walks, checks=4, replicas=12)
+        post = jaxcos.uncertainty(data, start, seed=r, walkers=24, max_steps=1000, hi_walks=hi_walks, checks=4,
+                                  replicas=12)
         truth = np.asarray(start.param.to_physical(start.param.from_material(TRUTH)), float)
         row = dict(replicate=r, converged=post.converged, chain_in_tau=post.record["chain_in_tau"],
                    min_ess=float(np.min(post.chain.ess)), in68=[], in95=[], in68_noise_only=[], in68_laplace=[],
@@ -72,7 +71,7 @@ def coverage(replicates, hi_walks, lo_walks):
     n = replicates * len(rows[0]["in68"])
     z = np.array([row["z"] for row in rows])
     return dict(machine=_machine(), replicates=replicates, truth_walks=TRUTH_WALKS, hi_walks=hi_walks,
-                mean_z=z.mean(axis=0).tolist(), rms_z=np.sqrt((z ** 2).mean(axis=0)).tolist(), lo=(lo_walks, 48),
+                mean_z=z.mean(axis=0).tolist(), rms_z=np.sqrt((z ** 2).mean(axis=0)).tolist(),
                 pairs=n, coverage=frac,
                 binomial_se_68=float(np.sqrt(0.68 * 0.32 / n)), labels=list(post.labels), rows=rows,
                 time_s=time.perf_counter() - t0)
@@ -98,12 +97,11 @@ def main():
     parser.add_argument("what", choices=("coverage", "report"))
     parser.add_argument("--replicates", type=int, default=20)
     parser.add_argument("--data", default="measurements/matte2.csv")
-    parser.add_argument("--lo-walks", type=int, default=32, help="walks of the estimate in the loop (0: linearisation)")
     parser.add_argument("--hi-walks", type=int, default=8192, help="walks of the value and Jacobian at the fit")
     args = parser.parse_args()
-    result = coverage(args.replicates, args.hi_walks, args.lo_walks) if args.what == "coverage" else report(args.data)
+    result = coverage(args.replicates, args.hi_walks) if args.what == "coverage" else report(args.data)
     os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
-    suffix = f"_lo{args.lo_walks}_hi{args.hi_walks}" if args.what == "coverage" else ""
+    suffix = f"_hi{args.hi_walks}" if args.what == "coverage" else ""
     target = os.path.join(HERE, "results", f"uncertainty_{args.what}{suffix}.json")
     with open(target, "w", encoding="utf-8") as fh:
         json.dump(result, fh, indent=1, default=float)

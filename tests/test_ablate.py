@@ -11,7 +11,6 @@ import pytest
 
 import jaxcos
 from jaxcos.inference._ablate import (
-    ABLATION_FILES,
     CSV_COLUMNS,
     check_variants,
     embed,
@@ -26,6 +25,7 @@ from jaxcos.cli import main
 from jaxcos.inference._fit import make_problem, parameterization
 from jaxcos.inference._kubelka_munk import make_km_problem
 from jaxcos.io._measurements import Measurements
+from jaxcos.report._ablate import ABLATION_FILES
 
 # --- structure ---------------------------------------------------------------------------
 

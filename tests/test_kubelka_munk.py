@@ -7,16 +7,8 @@ import pytest
 from scipy.integrate import solve_bvp
 
 import jaxcos
-from jaxcos.inference._kubelka_munk import (
-    KM_N_PARAMS,
-    beckmann,
-    directions,
-    kelemen_specular,
-    km_from_x,
-    km_labels,
-    km_to_x,
-    make_km_problem,
-)
+from jaxcos.inference._kubelka_munk import KM_N_PARAMS, km_from_x, km_labels, km_to_x, make_km_problem
+from jaxcos.model._kubelka_munk import beckmann, directions, kelemen_specular
 from jaxcos.io._measurements import Measurements
 
 S = np.array([5.0, 20.0, 50.0])

@@ -12,7 +12,8 @@ from scipy.stats import chi2
 import jaxcos
 from jaxcos.cli import main
 from jaxcos.io._measurements import Measurements
-from jaxcos.inference._posterior import laplace, run_ensemble, sensitivity, uncertainty, write_uncertainty
+from jaxcos.inference._posterior import laplace, run_ensemble, sensitivity, uncertainty
+from jaxcos.report import write_uncertainty
 
 # --- a linear-Gaussian problem whose posterior is known exactly -------------------
 
@@ -164,7 +165,7 @@ def test_report_says_when_the_chain_reaches_the_edge_of_the_linearisation():
     """A posterior cut by the linearisation's region is told apart from one cut by the prior."""
     from types import SimpleNamespace
 
-    from jaxcos.inference._posterior import _laplace_notes
+    from jaxcos.report._posterior import _laplace_notes
 
     row = dict(p16_noise_only=0.2, p84_noise_only=0.3, laplace_sd=0.05)
     summary = {"inside": dict(row, **{"p2.5": 0.15, "p97.5": 0.35}),

@@ -1,8 +1,8 @@
-"""``jaxcos ablate``: what each part of the model buys, and how it compares with Kubelka-Munk.
+"""The ablation: what each part of the model buys, and how it compares with Kubelka-Munk.
 
 Fits every variant on every measurement file, as the ablation of Lanza et al.
 2024 (their Figure 6) does, plus the Kubelka-Munk baseline of Huang et al.
-2013 (:mod:`jaxcos._kubelka_munk`):
+2013 (docs/model.md section 6, :func:`jaxcos.fit_kubelka_munk`):
 
 ==================  ==========================================================  ==========
 variant             what it keeps                                               parameters
@@ -35,6 +35,11 @@ Protocol, per file:
   (:func:`embed`) and the better result kept.
 * ``kubelka_munk`` by :func:`jaxcos.fit_kubelka_munk` (every start refined).
 
+Both fits return results with the same attributes, which is all the
+ablation reads: ``material``, ``model`` and ``model_std`` (``None`` for the
+deterministic Kubelka-Munk model) and a ``record`` of the loss statistics
+(``loss``, ``l2``, ``rmse``, ``n_params``, ``time_s``).
+
 All Monte Carlo variants use the same budget (``walks``, ``bounces``) and seed,
 so the comparison is like for like. Fits of one variant on files of one shape
 share compiled code: files with std columns are padded to a common shape (see
@@ -60,50 +65,34 @@ Example::
     jaxcos.write_ablation(result, "out/ablation")
 """
 
-import csv
 import dataclasses
-import io
-import json
 import math
 import os
 import time
 
+import equinox as eqx
 import numpy as np
 
-from .._errors import InputError, refuse_overwrite, staged_outputs
-from ._fit import FIT_BOUNCES, fit, parameterization
-from ._kubelka_munk import (  # noqa: F401  (re-exported by jaxcos)
-    KM_N_PARAMS,
-    KubelkaMunk,
-    fit_kubelka_munk,
-    kelemen_specular,
-    km_combine,
-    km_invert,
-    km_layer,
-    km_over_background,
-    km_r_inf,
-)
-from ..io import material_to_dict
+from .._errors import InputError
+from ..io import Measurements, load_measurements
 from ..model import with_variant
+from ._fit import FIT_BOUNCES, fit, fit_statistics, parameterization
+from ._kubelka_munk import KM_N_PARAMS, fit_kubelka_munk
 
 ABLATION_VARIANTS = ("diffusers_only", "platelets_only", "single_lobe", "two_lobe", "kubelka_munk")
 """The variants of an ablation, in the order of its table and figure."""
 REDUCED = ("diffusers_only", "platelets_only", "single_lobe")
 """Monte Carlo variants that also start from the two-lobe fit."""
 ABLATION_WALKS = 128
-"""Walks per incidence in an ablation's Monte Carlo fits: half the fit's
-default, so that the four bundled files x five variants fit in about a quarter
-of an hour on two cores (see ``benchmarks/RESULTS.md``). The fits weight the
-larger Monte Carlo error into their objective, as :func:`jaxcos.fit` does."""
+"""Walks per incidence in an ablation's Monte Carlo fits: a smaller budget than
+the fit's default (:data:`jaxcos.inference.FIT_WALKS`), as an ablation makes
+many fits. The fits weight the larger Monte Carlo error into their objective,
+as :func:`jaxcos.fit` does."""
 ABLATION_BOUNCES = FIT_BOUNCES
 """Bounces per walk: the fit's default (unfinished energy below 0.4% for the bundled products)."""
-ABLATION_FILES = ("ablation.csv", "report.md", "ablation.png", "fits.json")
-"""What :func:`write_ablation` writes under its folder."""
-POOR_FIT = 5.0
-"""A file whose best reduced chi-square exceeds this gets a warning in the report."""
 CSV_COLUMNS = ("file", "variant", "l2", "rmse", "delta_e2000", "n_params", "aic", "bic", "time_s", "chi2",
                "reduced_chi2", "n_points", "loss", "start", "walks", "bounces", "seed")
-"""Columns of ``ablation.csv`` (docs/formats.md requires the first nine)."""
+"""Keys of each row of an ablation, the columns of ``ablation.csv`` (docs/formats.md requires the first nine)."""
 
 
 # --- variants ---------------------------------------------------------------------------
@@ -140,8 +129,6 @@ def embed(material, variant, reference):
     ``diffusers_only`` (``platelets_only``): ``c_d = 0.97`` (``0.03``) and the
     platelet (diffuser) parameters of ``reference``, a fit of ``variant``.
     """
-    import equinox as eqx
-
     sub, ref = material.layers[0], reference.layers[0]
     if material.variant == "single_lobe":
         layer = eqx.tree_at(lambda l: (l.g2, l.w_g), sub, (sub.g1, sub.w_g * 0 + 0.5))
@@ -173,8 +160,6 @@ def start_from_two_lobe(material, variant):
     The parts the variant keeps take the two-lobe values; ``single_lobe``
     takes the mean cosine ``w_g g1 + (1 - w_g) g2`` of the two lobes as its ``g1``.
     """
-    import equinox as eqx
-
     layer = material.layers[0]
     if variant == "single_lobe":
         g = layer.w_g * layer.g1 + (1.0 - layer.w_g) * layer.g2
@@ -290,7 +275,7 @@ class AblationResult:
 
     Attributes:
         rows: one dict per file and variant with the columns of :data:`CSV_COLUMNS`.
-        fits: ``{(file index, variant): FitResult or KMFitResult}``, the kept fits.
+        fits: ``{(file index, variant): FitResult or KMFitResult}``, the kept fits (the same attributes).
         measurements: the measurement tables, in order.
         names: the file names used in the table.
         variants: the variants fitted, in table order.
@@ -306,8 +291,7 @@ class AblationResult:
 
 
 def _load(item):
-    from ..io import Measurements, load_measurements
-
+    """``(measurements, name)`` of a measurement table or of the path of its file."""
     if isinstance(item, Measurements):
         return item, item.path or "measurements"
     if isinstance(item, (str, os.PathLike)):
@@ -325,15 +309,13 @@ def _load_average():
 
 def _real(result, meas):
     """A fit of a padded file cut back to the file's real points (they come first), its statistics redone."""
-    from ._fit import fit_statistics
-
     n = meas.n_points
     if result.model.shape[0] == n:
         return result
     record = dict(result.record)
     record.update(fit_statistics(meas, result.model[:n], record["loss"], record["n_params"]))
     cut = dict(model=result.model[:n])
-    if hasattr(result, "model_std"):
+    if result.model_std is not None:
         cut["model_std"] = result.model_std[:n]
         record["mc_error_median"] = float(np.median(cut["model_std"] / (meas.std if meas.std is not None else 1.0)))
     return dataclasses.replace(result, record=record, **cut)
@@ -356,7 +338,7 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
         exposure: scale of the reflectance factors before the CIEDE2000 colours.
         share_compiled: pad files with std columns to a common shape so that
             their fits share compiled code.
-        progress: a callable ``progress(message)``.
+        progress: a callable ``progress(message)`` (default: none).
 
     Returns:
         An :class:`AblationResult`.
@@ -446,176 +428,3 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
                     total_time_s=round(time.perf_counter() - t_start, 1), load_average=(load_start, _load_average()))
     return AblationResult(rows=rows, fits=fits, measurements=measurements, names=names, variants=variants,
                           settings=settings)
-
-
-# --- what it writes -------------------------------------------------------------------------
-
-
-def _csv_text(rows):
-    out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=CSV_COLUMNS, lineterminator="\n")
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
-    return out.getvalue()
-
-
-def _fmt(v, digits=4):
-    return "—" if isinstance(v, float) and math.isnan(v) else f"{v:.{digits}g}"
-
-
-def ablation_report(result):
-    """The human-readable ``report.md`` of an :class:`AblationResult`."""
-    s = result.settings
-    lines = [
-        "# Ablation",
-        "",
-        f"{len(result.names)} file(s), variants {', '.join(f'`{v}`' for v in result.variants)}. "
-        f"Monte Carlo variants: {s['walks']} walks per incidence, {s['bounces']} bounces, seed {s['seed']}; "
-        f"multi-starts of 1 default + {s['starts']} other starts, one of broad tilted platelets (two_lobe refines the {s['refine']} best screened "
-        f"and the default start unscreened, each reduced variant its {s['reduced_refine']} best and the default, "
-        "then the start from the two-lobe fit, keeping the "
-        "better by chi-square; a variant beaten by a variant nested in it is refitted from that fit). "
-        f"Kubelka-Munk: every start refined. Total time {s['total_time_s']:.0f} s"
-        + (f" (1-minute load average {s['load_average'][0]} at the start, {s['load_average'][1]} at the end, "
-           f"{os.cpu_count()} CPUs)." if None not in s.get("load_average", (None,)) else "."),
-        "",
-        "Columns: `L2` the paper's metric (sum of squared differences in the file's quantity); `chi2` with the "
-        "file's std; `AIC = -2 ln L + 2k`, `BIC = -2 ln L + k ln n` from the Gaussian likelihood "
-        "(`-2 ln L = chi2 + sum ln(2 pi std^2)`, `n` = points x 3; without std the variance is estimated and "
-        "counted as a parameter); `ΔBIC` from the file's best. The Monte Carlo models' own error counts as misfit. "
-        f"`ΔE00`: mean CIEDE2000 colour difference of linear sRGB reflectance factors at exposure "
-        f"{s['exposure']:g} (a white diffuser is L* = 100), sRGB primaries, D65 white (CIE 1931 2°). "
-        "Time: wall time of the variant's fits on that file, including compilation the first time a variant "
-        "meets a shape.",
-        "",
-    ]
-    best_rows = []
-    for name in result.names:
-        rows = [r for r in result.rows if r["file"] == name]
-        best = min(rows, key=lambda r: r["bic"])
-        best_rows.append((name, best))
-        lines += [f"## {name}", "",
-                  "| variant | k | L2 | RMSE | reduced chi2 | ΔE00 | AIC | BIC | ΔBIC | start kept | time |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
-        for r in rows:
-            mark = " **(best BIC)**" if r is best else ""
-            lines.append(f"| `{r['variant']}`{mark} | {r['n_params']} | {_fmt(r['l2'])} | {_fmt(r['rmse'])} | "
-                         f"{_fmt(r['reduced_chi2'], 3)} | {_fmt(r['delta_e2000'], 3)} | {r['aic']:.1f} | "
-                         f"{r['bic']:.1f} | {r['bic'] - best['bic']:.1f} | {r['start']} | {r['time_s']:.1f} s |")
-        lowest = min(r["reduced_chi2"] for r in rows)
-        if lowest > POOR_FIT:
-            lines += ["", f"**No variant fits this file within its noise** (smallest reduced chi-square {lowest:.3g}): "
-                      "the ranking says which misfit is least bad, not which model is right. A narrow highlight "
-                      "that no start of the multi-start reached is the usual cause; compare the panels of "
-                      "`ablation.png`."]
-        lines.append("")
-    lines += ["## Preferred by BIC", "", "| file | variant | next best (ΔBIC) |", "|---|---|---|"]
-    for name, best in best_rows:
-        others = sorted((r for r in result.rows if r["file"] == name and r is not best), key=lambda r: r["bic"])
-        nxt = f"`{others[0]['variant']}` (+{others[0]['bic'] - best['bic']:.1f})" if others else "—"
-        lines.append(f"| {name} | `{best['variant']}` | {nxt} |")
-    if s.get("padded_shape"):
-        i, j, n = s["padded_shape"]
-        lines += ["", f"Files with std columns were padded to {i} incidences x {j} outgoing directions ({n} points) "
-                  "with zero-weight dummy points, so each Monte Carlo variant compiled once."]
-    lines += ["", "![measured and fitted, one row per file](ablation.png)", ""]
-    return "\n".join(lines)
-
-
-def ablation_figure(result, path):
-    """Save the grid of measured and fitted tables (rows: files; columns: measured, then each variant)."""
-    from matplotlib.figure import Figure
-
-    from ..io import default_exposure, draw_reflectance
-
-    n_rows, n_cols = len(result.names), 1 + len(result.variants)
-    fig = Figure(figsize=(3.1 * n_cols, 2.7 * n_rows), layout="constrained")
-    axes = np.atleast_2d(fig.subplots(n_rows, n_cols, squeeze=False))
-    for i, (meas, name) in enumerate(zip(result.measurements, result.names)):
-        to_rf = math.pi if meas.quantity == "brdf" else 1.0
-        k = default_exposure(meas.values * to_rf)
-        draw_reflectance(axes[i, 0], meas.theta_i, meas.theta_o, meas.values * to_rf, exposure=k,
-                         title=f"{os.path.basename(name)}: measured")
-        for j, variant in enumerate(result.variants, start=1):
-            row = next(r for r in result.rows if r["file"] == name and r["variant"] == variant)
-            draw_reflectance(axes[i, j], meas.theta_i, meas.theta_o, result.fits[(i, variant)].model * to_rf,
-                             exposure=k, title=f"{variant}\nL2 {row['l2']:.3g}")
-        for j in range(n_cols):
-            if i < n_rows - 1:
-                axes[i, j].set_xlabel("")
-            if j > 0:
-                axes[i, j].set_ylabel("")
-    fig.savefig(path, dpi=100)
-
-
-def _fits_json(result):
-    out = {}
-    for (i, variant), r in result.fits.items():
-        entry = out.setdefault(result.names[i], {})
-        if variant == "kubelka_munk":
-            entry[variant] = {"parameters": r.record["parameters"], "fit": r.record}
-        else:
-            entry[variant] = {**material_to_dict(r.material), "fit": r.record}
-    return json.dumps(out, indent=1, default=float) + "\n"
-
-
-def write_ablation(result, out_dir, *, force=False):
-    """Write ``ablation.csv``, ``report.md``, ``ablation.png`` and ``fits.json`` (every fitted model) under ``out_dir``.
-
-    Everything is written into a temporary folder first and moved in at the
-    end, so a failure leaves nothing half-written. Existing files are kept
-    unless ``force``.
-    """
-    with staged_outputs(out_dir, ABLATION_FILES, force) as tmp:
-        with open(os.path.join(tmp, "ablation.csv"), "w", encoding="utf-8") as fh:
-            fh.write(_csv_text(result.rows))
-        with open(os.path.join(tmp, "report.md"), "w", encoding="utf-8") as fh:
-            fh.write(ablation_report(result))
-        ablation_figure(result, os.path.join(tmp, "ablation.png"))
-        with open(os.path.join(tmp, "fits.json"), "w", encoding="utf-8") as fh:
-            fh.write(_fits_json(result))
-    return [os.path.join(os.fspath(out_dir), name) for name in ABLATION_FILES]
-
-
-# --- the command ---------------------------------------------------------------------------
-
-
-def _cmd(args):
-    from ..cli._main import progress
-
-    variants = check_variants(args.variants)
-    targets = [os.path.join(args.out, name) for name in ABLATION_FILES]
-    refuse_overwrite(targets, args.force)
-    result = ablate(args.measurements, variants, seed=args.seed, walks=args.walks, bounces=args.bounces,
-                    starts=args.starts, exposure=args.exposure, progress=progress("ablate"))
-    write_ablation(result, args.out, force=args.force)
-    for name in result.names:
-        best = min((r for r in result.rows if r["file"] == name), key=lambda r: r["bic"])
-        print(f"{name}: best by BIC {best['variant']} (L2 {best['l2']:.4g})")
-    print(f"ablation of {len(result.names)} file(s) x {len(variants)} variant(s) in "
-          f"{result.settings['total_time_s']:.0f} s. Wrote {', '.join(targets)}.")
-
-
-def add_command(sub):
-    """Register ``jaxcos ablate`` on an argparse subparsers object."""
-    p = sub.add_parser("ablate", help="fit every model variant and the Kubelka-Munk baseline to measurement files",
-                       description="Fit each variant (diffusers_only, platelets_only, single_lobe, two_lobe, "
-                       "kubelka_munk) to each MEASUREMENTS.csv and compare them: writes DIR/ablation.csv (L2, RMSE, "
-                       "mean CIEDE2000, parameters, AIC, BIC, time per file and variant), DIR/report.md, "
-                       "DIR/ablation.png (a grid like Figure 6 of Lanza et al. 2024) and DIR/fits.json.")
-    p.add_argument("measurements", nargs="+", metavar="MEASUREMENTS.csv")
-    p.add_argument("--out", required=True, metavar="DIR")
-    p.add_argument("--variants", default=",".join(ABLATION_VARIANTS), metavar="LIST",
-                   help=f"comma-separated variants (default: all: {','.join(ABLATION_VARIANTS)})")
-    p.add_argument("--seed", type=int, default=0, help="seeds every fit's Monte Carlo key and random starts")
-    p.add_argument("--walks", type=int, default=ABLATION_WALKS,
-                   help=f"walks per incidence of the Monte Carlo fits (default {ABLATION_WALKS})")
-    p.add_argument("--bounces", type=int, default=ABLATION_BOUNCES,
-                   help=f"bounces per walk (default {ABLATION_BOUNCES})")
-    p.add_argument("--starts", type=int, default=15, help="random starts per multi-start besides the default one")
-    p.add_argument("--exposure", type=float, default=1.0,
-                   help="scale of the reflectance factors before the CIEDE2000 colours (default 1: white = L* 100)")
-    p.add_argument("--force", action="store_true", help="overwrite an existing result in DIR")
-    p.set_defaults(func=_cmd)
-

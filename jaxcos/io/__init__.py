@@ -15,4 +15,4 @@ from ._measurements import (
     write_evaluation,
 )
 from ._params import load_params, material_from_dict, material_to_dict, save_params
-from ._plot import default_exposure, draw_reflectance, encode_srgb, plot_measurements
+from ._plot import cell_edges, default_exposure, draw_reflectance, encode_srgb, plot_measurements

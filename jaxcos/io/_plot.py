@@ -52,7 +52,7 @@ def default_exposure(rgb):
     return float(EXPOSURE_TARGET / np.percentile(values, EXPOSURE_PERCENTILE))
 
 
-def _edges(centres, half=0.5):
+def cell_edges(centres, half=0.5):
     """Cell edges halfway between sorted distinct ``centres``, half a spacing (or ``half``) beyond the ends."""
     if centres.size == 1:
         return np.array([centres[0] - half, centres[0] + half])
@@ -101,7 +101,7 @@ def draw_reflectance(ax, theta_i, theta_o, rgb, *, exposure, title=None):
     if len(set(zip(theta_i.tolist(), theta_o.tolist()))) != theta_i.size:
         raise ValueError("a (theta_i, theta_o) pair occurs twice; draw out-of-plane points separately")
     rows = np.unique(theta_i)
-    row_edges = _edges(rows, half=2.5)
+    row_edges = cell_edges(rows, half=2.5)
     in_row = [np.sort(theta_o[theta_i == t]) for t in rows]
     spacings = np.concatenate([np.diff(o) for o in in_row])
     half = 0.5 * float(np.median(spacings)) if spacings.size else 2.5
@@ -109,7 +109,7 @@ def draw_reflectance(ax, theta_i, theta_o, rgb, *, exposure, title=None):
     colour_of = dict(zip(zip(theta_i.tolist(), theta_o.tolist()), encode_srgb(rgb, exposure)))
     for k, (t, outs) in enumerate(zip(rows, in_row)):
         y0, y1 = row_edges[k], row_edges[k + 1]
-        x = _edges(outs, half)
+        x = cell_edges(outs, half)
         for j, o in enumerate(outs):
             cells.append([(x[j], y0), (x[j + 1], y0), (x[j + 1], y1), (x[j], y1)])
             colours.append(colour_of[(float(t), float(o))])
