@@ -1,7 +1,8 @@
 """What a Monte Carlo budget buys: error, unfinished energy, forward and Jacobian time, and fits, against the budget.
 
-A thin wrapper of ``jaxcos bench accuracy`` (``jaxcos/_bench.py``, where the
-settings and the method are documented) writing into ``benchmarks/results/``:
+A thin wrapper of ``jaxcos bench accuracy`` (``jaxcos/inference/_bench.py``,
+where the settings and the method are documented; ``jaxcos/report/_bench.py``
+for the files) writing into ``benchmarks/results/``:
 ``accuracy.json`` (every number, machine record, load average with every
 timing), ``accuracy.md`` (tables), ``accuracy.png`` and ``accuracy_fit.png``.
 

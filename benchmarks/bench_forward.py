@@ -5,7 +5,7 @@ t = 16, 512 bounces, 128 walks per incidence direction. For a dewy and a matte
 product it measures compile time, run time (best of several, after
 ``block_until_ready``), walk-steps per second, peak memory (each case in a
 fresh process), the fit's Jacobian against its 12 parameters (batched forward
-mode, 8 tangents: ``jaxcos.inference._bench.bsdf_problem``; its ratio to one forward
+mode, 8 tangents: ``jaxcos.inference.bsdf_problem``; its ratio to one forward
 evaluation from alternating runs in the Jacobian's process), and the variance and cost of
 exact against Monte Carlo single scattering. Run time and CPU time (all
 threads) are both recorded, with the load average.
@@ -48,7 +48,7 @@ def _case(kind, product, out):
 
     import jaxcos
 
-    from jaxcos.inference._bench import bsdf_problem
+    from jaxcos.inference import bsdf_problem
 
     m = jaxcos.published(product)
     q = jaxcos.make_query(*_grid())

@@ -40,22 +40,15 @@ from .model import (
 )
 from .io import Measurements, import_raw, load_angles, load_measurements, load_params, save_measurements, save_params
 from .render import render
+from .model._kubelka_munk import KubelkaMunk, km_combine, km_invert, km_layer, km_over_background, km_r_inf
 from .inference import (
     ABLATION_VARIANTS,
     AblationResult,
     FitResult,
-    KubelkaMunk,
     Posterior,
     ablate,
     fit,
     fit_kubelka_munk,
-    km_combine,
-    km_invert,
-    km_layer,
-    km_over_background,
-    km_r_inf,
     uncertainty,
 )
-from .report import write_fit
-from .inference._posterior import write_uncertainty
-from .inference._ablate import write_ablation
+from .report import write_ablation, write_fit, write_uncertainty

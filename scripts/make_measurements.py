@@ -10,10 +10,10 @@ jaxcos, plus Gaussian noise. Nothing of the real measurements goes into them
 except the measurement *positions*.
 
 Angles: the ``(theta_i, theta_o)`` positions the real instrument measured,
-read from ``../shared/data/grid.csv`` (beside the repository; ``--grid`` to
-point elsewhere), so the data have the instrument's coverage and gaps. Its
-``product`` column holds the Clarins product numbers, mapped as in
-``shared/data/README.md`` and docs/model.md section 5: 105 Skin Illusion 105 Nude =
+read from the package's ``jaxcos/data/grid.csv`` (angles only, no measured
+values; ``--grid`` to read another file of the same columns), so the data
+have the instrument's coverage and gaps. Its ``product`` column holds the
+Clarins product numbers, mapped as in docs/model.md section 5: 105 Skin Illusion 105 Nude =
 Dewy 1, 112 Skin Illusion 112 Nude = Dewy 2, 103 Skin Illusion Velvet 103 Nude
 = Matte 1, 108 Skin Illusion Velvet 108 = Matte 2.
 
@@ -33,14 +33,14 @@ Values and std are written with 6 significant digits.
 The spectral file ``dewy1_spectral.csv`` holds the noisy values of
 ``dewy1.csv`` as spectra at 380, 390, ..., 780 nm: per point, the quadratic
 polynomial in wavelength whose linear sRGB under D65
-(:func:`jaxcos.io._measurements.spectral_to_srgb`) is exactly that point's
+(:func:`jaxcos.io.spectral_to_srgb`) is exactly that point's
 ``r, g, b`` (a flat spectrum for a grey). Reading it gives back ``dewy1.csv``
 to about 1e-9.
 
 Reproducibility: the same seed, jaxcos estimator and jax version give the
 same files on CPU (the generating versions are in each file's metadata); any
 change to the estimator's arithmetic moves the last digits, so rerun this
-script after changing ``jaxcos/_walk.py`` or ``jaxcos/_phase.py``. Regenerate
+script after changing ``jaxcos/model/_walk.py`` or ``jaxcos/model/_phase.py``. Regenerate
 into another folder and compare with ``--out``. It needs about 6 minutes of
 CPU time (Dewy 2, the sharpest highlight, takes most of it): 6 to 11 minutes
 on two cores.
@@ -48,6 +48,7 @@ on two cores.
 
 import argparse
 import csv
+import importlib.resources
 import json
 import sys
 import time
@@ -57,8 +58,7 @@ import jax
 import numpy as np
 
 import jaxcos
-from jaxcos.io import material_to_dict
-from jaxcos.io._measurements import Measurements, load_measurements, save_measurements, spectral_to_srgb
+from jaxcos.io import Measurements, load_measurements, material_to_dict, save_measurements, spectral_to_srgb
 
 SEED = 20240601
 BOUNCES = 256
@@ -75,13 +75,17 @@ PRODUCTS = {  # jaxcos name: (grid.csv product number, label)
     "matte2": (108, "Matte 2 (Clarins Skin Illusion Velvet 108 style)"),
 }
 SPECTRAL_WAVELENGTHS = np.arange(380.0, 781.0, 10.0)
-DEFAULT_GRID = Path(__file__).resolve().parents[2] / "shared" / "data" / "grid.csv"
+DEFAULT_GRID = importlib.resources.files("jaxcos") / "data" / "grid.csv"
+"""The instrument's measurement positions, shipped with the package."""
 OUT = Path(__file__).resolve().parents[1] / "measurements"
 
 
 def read_grid(path, product):
-    """``(theta_i, theta_o)`` in degrees of one product of ``grid.csv``, in file order."""
-    with open(path, newline="") as fh:
+    """``(theta_i, theta_o)`` in degrees of one product of ``grid.csv``, in file order.
+
+    ``path``: a :class:`~pathlib.Path` or a package resource (:data:`DEFAULT_GRID`).
+    """
+    with path.open(newline="") as fh:
         rows = [r for r in csv.DictReader(fh) if int(r["product"]) == product]
     if not rows:
         sys.exit(f"{path}: no positions for product {product}.")
@@ -116,6 +120,11 @@ def significant(x):
     return np.vectorize(lambda v: float(f"{v:.{DIGITS}g}"))(x)
 
 
+def grid_label(grid):
+    """How the metadata name the grid file: ``jaxcos/data/grid.csv`` for the package's own."""
+    return "jaxcos/data/grid.csv" if grid == DEFAULT_GRID else str(grid)
+
+
 def make_product(name, grid, out, force):
     product, label = PRODUCTS[name]
     theta_i, theta_o = read_grid(grid, product)
@@ -131,7 +140,7 @@ def make_product(name, grid, out, force):
         "synthetic": "yes: simulated by jaxcos from published parameters plus noise, not measured",
         "parameters": f"jaxcos.published('{name}'), Lanza et al. 2024 Table 2 (t = 16, black base, phi_p = 0): "
                       + json.dumps(rounded(material_to_dict(material))),
-        "angles": f"positions measured for product {product} in shared/data/grid.csv (real instrument pattern)",
+        "angles": f"positions measured for product {product} in {grid_label(grid)} (real instrument pattern)",
         "noise": f"value = v + N(0, s^2), s = sqrt(({NOISE_RELATIVE} v)^2 + {NOISE_ABSOLUTE}^2), v = noise-free "
                  f"reflectance factor, independent per point and channel; r_std,g_std,b_std hold s",
         "seed": str(SEED),
@@ -173,12 +182,14 @@ def write_spectral(meas, path):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--grid", type=Path, default=DEFAULT_GRID, help="grid.csv of measurement positions")
+    parser.add_argument("--grid", type=Path, default=DEFAULT_GRID,
+                        help="CSV of measurement positions, columns product,theta_i,theta_o "
+                        "(default: the package's jaxcos/data/grid.csv)")
     parser.add_argument("--out", type=Path, default=OUT, help="output folder (default: measurements/)")
     parser.add_argument("--force", action="store_true", help="overwrite existing files")
     args = parser.parse_args()
-    if not args.grid.exists():
-        sys.exit(f"{args.grid}: no such file; pass --grid with the path of shared/data/grid.csv.")
+    if not args.grid.is_file():
+        sys.exit(f"{args.grid}: no such file; pass --grid with the path of a grid.csv.")
     names = [f"{name}.csv" for name in PRODUCTS] + ["dewy1_spectral.csv"]
     existing = [n for n in names if (args.out / n).exists()]
     if existing and not args.force:

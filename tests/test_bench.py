@@ -1,24 +1,46 @@
 """``jaxcos bench accuracy --quick`` writes its files; ``--budget`` presets resolve, and unknown ones are refused.
 
 The benchmark's numbers are not checked (a tiny budget on a shared machine):
-only that the whole path runs and leaves what it promises.
+only that the whole path runs and leaves what it promises. The package data
+it reads (``jaxcos/data/``) are checked against the top-level files they copy.
 """
 
+import csv
+import importlib.resources
 import json
 import os
+from pathlib import Path
 
 import pytest
 
 import jaxcos.cli._eval
-import jaxcos.inference._fit
-from jaxcos.inference._bench import FILES
+import jaxcos.cli._fit
+from jaxcos.report import ACCURACY_FILES as FILES
 from jaxcos.cli import main
 from jaxcos._errors import InputError
-from jaxcos.inference._fit import FIT_BOUNCES, FIT_WALKS
+from jaxcos.io import load_measurements
+from jaxcos.inference import FIT_BOUNCES, FIT_WALKS
 from jaxcos.model._walk import BUDGETS, DEFAULT_BOUNCES, DEFAULT_WALKS, resolve_budget
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MATTE2 = os.path.join(ROOT, "measurements", "matte2.csv")
+DATA = importlib.resources.files("jaxcos") / "data"
+GRID_PRODUCTS = {"dewy1": 105, "dewy2": 112, "matte1": 103, "matte2": 108}  # docs/model.md section 5
+
+
+def test_bundled_synthetic_set_equals_the_top_level_file():
+    assert (DATA / "matte2.csv").read_bytes() == Path(MATTE2).read_bytes()
+
+
+def test_the_instrument_grid_holds_angles_only_and_the_positions_of_the_bundled_sets():
+    with (DATA / "grid.csv").open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        rows = list(reader)
+    assert reader.fieldnames == ["product", "theta_i", "theta_o"]
+    for name, product in GRID_PRODUCTS.items():
+        meas = load_measurements(os.path.join(ROOT, "measurements", f"{name}.csv"))
+        positions = [(float(r["theta_i"]), float(r["theta_o"])) for r in rows if int(r["product"]) == product]
+        assert positions == list(zip(meas.theta_i.tolist(), meas.theta_o.tolist())), name
 
 
 @pytest.mark.slow
@@ -68,7 +90,7 @@ def _raise():
 
 def test_cli_budget_reaches_fit_and_eval(tmp_path, monkeypatch, capsys):
     seen = {}
-    monkeypatch.setattr(jaxcos.inference._fit, "fit", lambda meas, **kw: (seen.update(kw), _raise()))
+    monkeypatch.setattr(jaxcos.cli._fit, "fit", lambda meas, **kw: (seen.update(kw), _raise()))
     assert main(["fit", MATTE2, "--out", str(tmp_path / "f"), "--budget", "fast"]) == 2
     assert (seen["walks"], seen["bounces"]) == BUDGETS["fast"]
     assert main(["fit", MATTE2, "--out", str(tmp_path / "f"), "--budget", "accurate", "--walks", "32"]) == 2

@@ -316,7 +316,7 @@ def test_cli_import_then_plot(tmp_path, capsys):
 def test_cli_subprocess_gives_one_line_and_no_traceback(tmp_path):
     path = write(tmp_path, BAD_CSV["nan"][0])
     out = tmp_path / "fig.png"
-    proc = subprocess.run([sys.executable, "-m", "jaxcos.cli._main", "plot", path, "--out", str(out)],
+    proc = subprocess.run([sys.executable, "-m", "jaxcos", "plot", path, "--out", str(out)],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr == f"jaxcos plot: {path}, line 3: column 'g' holds NaN; only finite numbers are allowed.\n"

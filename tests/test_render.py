@@ -24,7 +24,8 @@ import pytest
 
 from jaxcos import InputError, Layer, Material
 from jaxcos.cli import main
-from jaxcos.render._render import BSDFTable, _despeckle, on_base, render, shade, tabulate
+from jaxcos.render import BSDFTable, on_base, render, shade, tabulate
+from jaxcos.render._render import _despeckle
 from jaxcos.model._walk import Query, simulate
 
 SIZE = 16

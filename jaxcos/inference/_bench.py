@@ -1,4 +1,4 @@
-"""``jaxcos bench accuracy``: what a Monte Carlo budget buys, in error and in time.
+"""The accuracy benchmark: what a Monte Carlo budget buys, in error and in time.
 
 Every number jaxcos reports is a Monte Carlo estimate with a budget: walks per
 incidence direction and bounces per walk. :func:`accuracy_benchmark` measures,
@@ -20,22 +20,21 @@ for a dewy and a matte product on the standard grid (``theta_i`` 0..75 step 5,
   data, the RMS relative difference between the fitted and the true BSDF on
   the standard grid, and the parameter errors.
 
-It writes ``accuracy.json`` (every number, with a machine record and the load
-average around each timing), ``accuracy.md`` (the tables), ``accuracy.png``
-(error against time) and ``accuracy_fit.png`` (the fits) under ``--out``.
-
-    jaxcos bench accuracy --out benchmarks/results [--quick] [--force]
-    python benchmarks/bench_accuracy.py                      # the same, into benchmarks/results
+The synthetic set is read from the package (``jaxcos/data/matte2.csv``, a
+copy of ``measurements/matte2.csv``), so the benchmark runs from an installed
+wheel. It returns every number as one JSON-ready dict;
+:func:`jaxcos.report.write_accuracy` writes the tables and figures, and
+``jaxcos bench accuracy`` does both.
 
 Timings are the best of the repeated runs after compilation, wall-clock and
 CPU (all threads of the process), taken on whatever else the machine is doing:
-the load average is recorded with each. The figures use CPU time, which
-contention disturbs far less than wall time (on a quiet two-core machine a
-run uses about 1.6 cores: wall is about CPU / 1.6).
+the load average is recorded with each. CPU time is disturbed by contention
+far less than wall time (on a quiet two-core machine a run uses about 1.6
+cores: wall is about CPU / 1.6).
 """
 
 import dataclasses
-import json
+import importlib.resources
 import os
 import platform
 import sys
@@ -43,15 +42,7 @@ import time
 
 import numpy as np
 
-from .._errors import InputError, refuse_overwrite, staged_outputs
-from ._fit import FIT_BOUNCES, FIT_WALKS
-
-FILES = ("accuracy.json", "accuracy.md", "accuracy.png", "accuracy_fit.png")
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-PAPER_BUDGET = (128, 512)
-"""The paper's budget (Lanza et al. 2024): 128 samples per direction, 512 bounces."""
-FIT_BUDGET = (FIT_WALKS, FIT_BOUNCES)
-"""The fit's default budget, marked in the figure."""
+from .._errors import InputError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,7 +60,7 @@ class Settings:
             ``reference_batch`` walks, exact single scattering.
         max_reference_rel_stderr: points whose reference relative standard
             error (worst channel) exceeds this are left out of every error.
-        fit_product: the synthetic set fitted end to end (``measurements/NAME.csv``,
+        fit_product: the synthetic set fitted end to end (:func:`synthetic_set`,
             truth ``jaxcos.published(NAME)``).
         fit_budgets: ``(walks, bounces)`` of the fits.
         fit_multistart: the fit's default multi-start (else one start, the default one).
@@ -137,12 +128,12 @@ def machine_record():
     """Platform, CPU count, versions and the load average now."""
     import jax
 
-    import jaxcos
+    from .. import __version__
 
     return dict(platform=platform.platform(), processor=platform.processor(), cpus=os.cpu_count(),
                 python=sys.version.split()[0], jax=jax.__version__, backend=jax.default_backend(),
                 devices=[str(d) for d in jax.devices()], float=str(jax.numpy.result_type(float)),
-                jaxcos=jaxcos.__version__, load_average=list(os.getloadavg()))
+                jaxcos=__version__, load_average=list(os.getloadavg()))
 
 
 def _load():
@@ -209,7 +200,7 @@ def _forward(material, query, walks, bounces, single, seeds):
 
 
 def bsdf_problem(material, query, key, walks, bounces):
-    """The fit's least-squares :class:`~jaxcos._fit.Problem` of the BSDF itself, and ``x`` at ``material``.
+    """The fit's least-squares ``Problem`` of the BSDF itself, and ``x`` at ``material``.
 
     Two-lobe parameterization (12 entries of ``x``), residuals ``f`` (zero
     data, unit weights), lobe probabilities of ``material``: its Jacobian is
@@ -252,10 +243,10 @@ def _errors(estimates, ref, keep):
 
 def sweep_product(product, settings, say):
     """All budgets of both sweeps and both strategies for one published product; a list of records."""
-    import jaxcos
+    from ..model import make_query, published
 
-    material = jaxcos.published(product)
-    query = jaxcos.make_query(*standard_grid())
+    material = published(product)
+    query = make_query(*standard_grid())
     say(f"{product}: reference")
     ref, ref_se = reference(material, query, settings, say)
     ref_rel = np.max(ref_se / np.maximum(ref, 1e-30), axis=-1)
@@ -335,24 +326,22 @@ def _check(material, meas, grid_query, truth, settings):
 
 def fit_budgets(settings, say):
     """Fit the synthetic set at each budget of ``settings``; a list of records and the truth's own numbers."""
-    import jaxcos
-    from ._fit import _DEFAULT, fit
-    from ..model import Layer, Material
+    from ._fit import fit, fixed_starts
+    from ..io import material_to_dict
+    from ..model import Layer, Material, make_query, published
 
-    path = os.path.join(ROOT, "measurements", f"{settings.fit_product}.csv")
-    if not os.path.exists(path):
-        raise InputError(f"{path}: the synthetic set of the end-to-end benchmark is missing.")
-    meas = jaxcos.load_measurements(path)
-    truth = jaxcos.published(settings.fit_product)
-    grid_query = jaxcos.make_query(*standard_grid())
+    meas = synthetic_set(settings.fit_product)
+    truth = published(settings.fit_product)
+    grid_query = make_query(*standard_grid())
     n_params = 12
     dof = meas.values.size - n_params
     chi2_truth = _check(truth, meas, grid_query, truth, settings)[0]
-    truth_info = dict(product=settings.fit_product, path=os.path.relpath(path, ROOT), n_points=int(meas.n_points),
+    truth_info = dict(product=settings.fit_product, path=f"measurements/{settings.fit_product}.csv", n_points=int(meas.n_points),
                       dof=int(dof), reduced_chi2_truth=chi2_truth / dof,
                       median_noise_rel=float(np.median(meas.std / np.abs(meas.values))))
     say(f"fits of {settings.fit_product}: the truth scores reduced chi-square {chi2_truth / dof:.2f} against the data")
-    start = None if settings.fit_multistart else Material(layers=(Layer(**_DEFAULT),))
+    # one start: the fit's default one (the first of its fixed starts), at the protocol's t = 16
+    start = None if settings.fit_multistart else Material(layers=(Layer(**fixed_starts(0, 16.0, None, None)[0][2]),))
     records = []
     for walks, bounces in settings.fit_budgets:
         load_before, c0 = _load(), time.process_time()
@@ -369,7 +358,7 @@ def fit_budgets(settings, say):
                    bsdf_rms_rel_error=appearance, bsdf_rms_rel_error_measured=at_measured,
                    starts_at_optimum=r["starts_at_optimum"],
                    param_abs_errors=_param_errors(result.material, truth),
-                   fitted=jaxcos._material.material_to_dict(result.material)["layers"][0])
+                   fitted=material_to_dict(result.material)["layers"][0])
         records.append(rec)
         say(f"  fit {walks:5d} walks x {bounces:3d} bounces: {rec['time_s']:6.1f} s (load {load_after[0]:.1f}), "
             f"checked reduced chi-square {rec['reduced_chi2_checked']:.2f}, BSDF error {100 * at_measured:.1f} % "
@@ -378,214 +367,33 @@ def fit_budgets(settings, say):
     return records, truth_info
 
 
-# --- outputs --------------------------------------------------------------------------------
+def synthetic_set(name):
+    """The bundled synthetic set ``name`` (``jaxcos/data/NAME.csv``, equal to ``measurements/NAME.csv``).
+
+    Raises:
+        InputError: if the package does not hold that set.
+    """
+    from ..io import load_measurements
+
+    resource = importlib.resources.files("jaxcos") / "data" / f"{name}.csv"
+    if not resource.is_file():
+        raise InputError(f"jaxcos/data/{name}.csv: the synthetic set of the end-to-end benchmark is missing.")
+    with importlib.resources.as_file(resource) as path:
+        return load_measurements(path)
 
 
-def _label(rec):
-    return f"{rec['walks']}x{rec['bounces']}"
+def accuracy_benchmark(*, quick=False, progress=None):
+    """Run the sweep and the fits; return every number as a JSON-ready dict.
 
-
-def _cpu(rec, what="forward"):
-    """CPU time of a record (wall time for records made before CPU time was recorded)."""
-    return rec.get(f"{what}_cpu_s", rec[f"{what}_s"])
-
-
-def accuracy_figure(data, path):
-    """Error against forward time (log-log), one curve per strategy and sweep, per product; then bias and cost."""
-    from matplotlib.figure import Figure
-
-    products = data["settings"]["products"]
-    fig = Figure(figsize=(5 * max(len(products), 2), 8), constrained_layout=True)
-    axes = fig.subplots(2, max(len(products), 2), squeeze=False)
-    styles = {("exact", "walks"): ("C0", "-", "o"), ("mc", "walks"): ("C1", "-", "o"),
-              ("exact", "bounces"): ("C0", ":", "s"), ("mc", "bounces"): ("C1", ":", "s")}
-    s = data["settings"]
-    for ax, product in zip(axes[0], products):
-        recs = [r for r in data["sweep"] if r["product"] == product]
-        for (single, sweep), (color, ls, marker) in styles.items():
-            pts = sorted((r for r in recs if r["strategy"] == single and r["sweep"] == sweep),
-                         key=lambda r: r["walks"] * r["bounces"])
-            if not pts:
-                continue
-            name = (f"walks {pts[0]['walks']}..{pts[-1]['walks']} at {s['walks_bounces']} bounces" if sweep == "walks"
-                    else f"bounces {pts[0]['bounces']}..{pts[-1]['bounces']} at {s['bounces_walks']} walks")
-            ax.plot([_cpu(r) for r in pts], [100 * r["rms_rel_error"] for r in pts], color=color, ls=ls,
-                    marker=marker, ms=4, label=f"{single} single scattering, {name}")
-            for r in pts:
-                ax.annotate(str(r["walks"] if sweep == "walks" else r["bounces"]), (_cpu(r), 100 * r["rms_rel_error"]),
-                            textcoords="offset points", xytext=(3, 3), fontsize=6, color=color)
-        for budget, mark, name in ((PAPER_BUDGET, "*", "paper's budget"), (FIT_BUDGET, "D", "the fit's default")):
-            at = [r for r in recs if (r["walks"], r["bounces"]) == budget and r["strategy"] == "exact"]
-            if at:
-                ax.plot(_cpu(at[0]), 100 * at[0]["rms_rel_error"], marker=mark, ms=12 if mark == "*" else 8,
-                        color="k", ls="none", mfc="none" if mark == "D" else "k",
-                        label=f"{name} {budget[0]} x {budget[1]} (exact)")
-        ref = data["reference"][product]
-        ax.axhline(100 * ref["rms_rel_stderr_kept"], color="0.6", lw=0.8, label="reference's own error")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        lowest = min([100 * r["rms_rel_error"] for r in recs] + [100 * ref["rms_rel_stderr_kept"]])
-        ax.set_ylim(0.7 * lowest, 1.4 * max(100 * r["rms_rel_error"] for r in recs))
-        ax.set_xlabel("forward CPU time on the standard grid (s, all threads)")
-        ax.set_ylabel("RMS relative error of the BSDF (%)")
-        ax.set_title(f"{product}: 560 points x 3 channels", fontsize=10)
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=6)
-    ax = axes[1][0]
-    for k, product in enumerate(products):
-        pts = sorted((r for r in data["sweep"] if r["product"] == product and r["strategy"] == "exact"
-                      and r["sweep"] == "bounces"), key=lambda r: r["bounces"])
-        ax.plot([r["bounces"] for r in pts], [max(r["unfinished_max"], 1e-12) for r in pts], color=f"C{k}",
-                marker="o", label=f"{product}: unfinished energy (max over incidences)")
-        bias = [(r["bounces"], r["truncation_bias_rms"]) for r in pts if r.get("truncation_bias_rms")]
-        if bias:
-            ax.plot(*zip(*bias), color=f"C{k}", ls="--", marker="s",
-                    label=f"{product}: RMS relative truncation bias of the BSDF")
-    ax.set_xscale("log", base=2)
-    ax.set_yscale("log")
-    ax.set_xlabel("bounces")
-    ax.set_title("what too few bounces leave out", fontsize=10)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=6)
-    ax = axes[1][1]
-    for k, product in enumerate(products):
-        pts = [r for r in data["sweep"] if r["product"] == product and r["strategy"] == "exact"]
-        ax.plot([r["walks"] * r["bounces"] for r in pts], [_cpu(r) for r in pts], color=f"C{k}", marker="o",
-                ls="none", ms=4, label=f"{product}: forward")
-        jac = [r for r in pts if "jacobian_s" in r]
-        ax.plot([r["walks"] * r["bounces"] for r in jac], [_cpu(r, "jacobian") for r in jac], color=f"C{k}",
-                marker="^", ls="none", label=f"{product}: Jacobian (12 parameters)")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("walks x bounces per incidence")
-    ax.set_ylabel("CPU time (s, all threads)")
-    ax.set_title("cost", fontsize=10)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=6)
-    for ax in list(axes[0][len(products):]) + list(axes[1][2:]):
-        ax.set_visible(False)
-    fig.savefig(path, dpi=72)
-
-
-def fit_figure(data, path):
-    """Fit quality against fit time, one point per budget."""
-    from matplotlib.figure import Figure
-
-    fits, truth = data["fits"], data["fit_truth"]
-    fig = Figure(figsize=(10, 3.8), constrained_layout=True)
-    a, b = fig.subplots(1, 2)
-    t = [r.get("cpu_s", r["time_s"]) for r in fits]
-    a.plot(t, [r["reduced_chi2_checked"] for r in fits], "o-", label="fitted material, evaluated accurately")
-    a.axhline(truth["reduced_chi2_truth"], color="k", ls="--", lw=0.8, label="the truth")
-    b.plot(t, [100 * r["bsdf_rms_rel_error"] for r in fits], "o-", color="C2", label="standard grid")
-    if all("bsdf_rms_rel_error_measured" in r for r in fits):
-        b.plot(t, [100 * r["bsdf_rms_rel_error_measured"] for r in fits], "s-", color="C3", label="measured angles")
-        b.axhline(100 * truth["median_noise_rel"], color="k", ls="--", lw=0.8, label="median noise of the data")
-    b.legend(fontsize=7)
-    for r in fits:
-        x = r.get("cpu_s", r["time_s"])
-        a.annotate(_label(r), (x, r["reduced_chi2_checked"]), textcoords="offset points", xytext=(3, 3), fontsize=7)
-        b.annotate(_label(r), (x, 100 * r["bsdf_rms_rel_error"]), textcoords="offset points", xytext=(3, 3),
-                   fontsize=7)
-    a.set_ylabel("reduced chi-square against the data")
-    b.set_ylabel("RMS relative BSDF error to the truth (%)")
-    b.set_yscale("log")
-    for ax in (a, b):
-        ax.set_xscale("log")
-        ax.set_xlabel("fit CPU time (s, all threads)")
-        ax.grid(True, which="both", alpha=0.3)
-    a.legend(fontsize=7)
-    a.set_title(f"fits of {truth['product']} (walks x bounces)", fontsize=10)
-    fig.savefig(path, dpi=72)
-
-
-def accuracy_table(data):
-    """The markdown of ``accuracy.md``."""
-    s = data["settings"]
-    m = data["machine"]
-    lines = [
-        "# What a Monte Carlo budget buys",
-        "",
-        f"Machine: {m['platform']}, {m['cpus']} CPUs, jax {m['jax']} ({m['backend']}, {m['float']}), "
-        f"Python {m['python']}. Load average before {m['load_average'][0]:.1f}, after "
-        f"{data['load_after'][0]:.1f}; every timing carries its own in `accuracy.json`. Times are the best of "
-        "the runs after compilation, wall-clock and CPU (all threads of the process); on a shared machine the wall "
-        "times are upper bounds of a quiet machine's, the CPU times less affected (a quiet run uses about 1.6 "
-        "cores, so CPU is about 1.6x wall there). The figures use CPU time. The load column is the 1-minute "
-        "load average after each timing.",
-        "",
-        f"Reference: {s['reference'][0]} walks x {s['reference'][1]} bounces per incidence, exact single "
-        f"scattering, independent keys. Points whose reference relative standard error exceeds "
-        f"{100 * s['max_reference_rel_stderr']:.0f}% (worst channel) are left out of every error:",
-        "",
-    ]
-    for product, ref in data["reference"].items():
-        lines.append(f"- {product}: {ref['kept']} of {ref['points']} points kept; the reference's own RMS relative "
-                     f"error over them is {100 * ref['rms_rel_stderr_kept']:.2f}% (a floor under every error below).")
-    lines += [
-        "",
-        f"Error: RMS over kept points, 3 channels and {s['seeds']} keys of (estimate - reference) / reference. "
-        "Unfinished: energy still carried by walks after the last bounce (max over incidences and channels). "
-        "Truncation bias: RMS relative difference to the same walks at the sweep's most bounces (common random "
-        "numbers, mean over the keys). Jacobian: the fit's (`jax.jacfwd` of its residuals: batched forward mode "
-        "against 12 parameters, coloured into 8 tangents since 2026-11-23), exact single scattering only, at a "
-        "subset of budgets.",
-        "",
-    ]
-    for product in s["products"]:
-        recs = [r for r in data["sweep"] if r["product"] == product]
-        lines += [f"## {product}", "",
-                  "| single scattering | sweep | walks | bounces | RMS rel. error | truncation bias | unfinished | "
-                  "forward wall / CPU | Jacobian wall / CPU | load |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
-        for r in recs:
-            bias = f"{100 * r['truncation_bias_rms']:.3g}%" if "truncation_bias_rms" in r else ""
-            jac = f"{r['jacobian_s']:.2f} / {r.get('jacobian_cpu_s', float('nan')):.2f} s" if "jacobian_s" in r else ""
-            mark = " (paper)" if (r["walks"], r["bounces"]) == PAPER_BUDGET else ""
-            lines.append(f"| {r['strategy']} | {r['sweep']} | {r['walks']} | {r['bounces']}{mark} | "
-                         f"{100 * r['rms_rel_error']:.2f}% | {bias} | {r['unfinished_max']:.1e} | "
-                         f"{1e3 * r['forward_s']:.0f} / {1e3 * r.get('forward_cpu_s', float('nan')):.0f} ms | {jac} | "
-                         f"{r['forward_load'][1][0]:.1f} |")
-        lines.append("")
-    t = data["fit_truth"]
-    lines += [
-        f"## End to end: fits of {t['product']}",
-        "",
-        f"`{t['path']}`: {t['n_points']} points, synthetic, truth `jaxcos.published(\"{t['product']}\")`, noise "
-        f"2% + 0.002 (median {100 * t['median_noise_rel']:.1f}% of the value). `jaxcos.fit` with its defaults "
-        f"({'multi-start' if s['fit_multistart'] else 'one start'}, seed 0) at each budget. *Checked*: the fitted "
-        f"material evaluated at {s['check_budget'][0]} walks x {s['check_budget'][1]} bounces with an independent "
-        f"key against the data (the truth scores {t['reduced_chi2_truth']:.2f}), and its BSDF against the "
-        "truth's on the standard grid (same key for both).",
-        "",
-        "| walks | bounces | fit time wall / CPU | load | MC error / noise | reduced chi-square (fit's own) | "
-        "reduced chi-square (checked) | BSDF error to truth, measured angles / standard grid | c_d error | "
-        "theta_p error (deg) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in data["fits"]:
-        own = f"{r['reduced_chi2_fit']:.2f}" if r["reduced_chi2_fit"] is not None else ""
-        lines.append(f"| {r['walks']} | {r['bounces']} | {r['time_s']:.0f} / {r.get('cpu_s', float('nan')):.0f} s | "
-                     f"{r['load'][1][0]:.1f} | "
-                     f"{r['mc_error_over_noise']:.2f} | {own} | {r['reduced_chi2_checked']:.2f} | "
-                     f"{100 * r.get('bsdf_rms_rel_error_measured', float('nan')):.1f}% / "
-                     f"{100 * r['bsdf_rms_rel_error']:.1f}% | {r['param_abs_errors']['c_d']:.2f} | "
-                     f"{r['param_abs_errors']['theta_p_deg']:.1f} |")
-    lines += ["", "![error against time](accuracy.png)", "", "![fits against budget](accuracy_fit.png)", ""]
-    return "\n".join(lines)
-
-
-def accuracy_benchmark(out_dir, *, quick=False, force=False, progress=None):
-    """Run the sweep and the fits, write :data:`FILES` under ``out_dir``; return the data written to JSON.
-
-    ``quick`` runs :data:`QUICK` (about a minute, for tests) instead of :data:`FULL`.
-    Existing files are kept unless ``force``; everything is written to a
-    temporary folder and moved in at the end.
+    ``quick`` runs :data:`QUICK` (about a minute, for tests) instead of
+    :data:`FULL`. ``progress(message)`` is told about each stage and budget.
+    The dict holds ``machine`` (:func:`machine_record`), ``quick``,
+    ``settings``, ``sweep`` and ``reference`` (:func:`sweep_product`),
+    ``fits`` and ``fit_truth`` (:func:`fit_budgets`), ``load_after`` and
+    ``total_s``.
     """
     say = progress or (lambda msg: None)
     settings = QUICK if quick else FULL
-    targets = [os.path.join(out_dir, name) for name in FILES]
-    refuse_overwrite(targets, force)
     data = dict(machine=machine_record(), quick=bool(quick), settings=dataclasses.asdict(settings),
                 sweep=[], reference={})
     t0 = time.perf_counter()
@@ -596,43 +404,4 @@ def accuracy_benchmark(out_dir, *, quick=False, force=False, progress=None):
     data["fits"], data["fit_truth"] = fit_budgets(settings, say)
     data["load_after"] = list(os.getloadavg())
     data["total_s"] = time.perf_counter() - t0
-    targets = write_outputs(data, out_dir, force=force)
-    say(f"wrote {', '.join(targets)} in {data['total_s']:.0f} s")
     return data
-
-
-def write_outputs(data, out_dir, *, force=False):
-    """Write :data:`FILES` for the ``data`` of :func:`accuracy_benchmark` (also to redraw them from a JSON)."""
-    with staged_outputs(out_dir, FILES, force) as tmp:
-        with open(os.path.join(tmp, FILES[0]), "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=1)
-        with open(os.path.join(tmp, FILES[1]), "w", encoding="utf-8") as fh:
-            fh.write(accuracy_table(data))
-        accuracy_figure(data, os.path.join(tmp, FILES[2]))
-        fit_figure(data, os.path.join(tmp, FILES[3]))
-    return [os.path.join(out_dir, name) for name in FILES]
-
-
-# --- the command ------------------------------------------------------------------------------
-
-
-def _cmd_accuracy(args):
-    from ..cli._main import progress
-
-    accuracy_benchmark(args.out, quick=args.quick, force=args.force, progress=progress("bench accuracy"))
-
-
-def add_command(sub):
-    """Register ``jaxcos bench accuracy``."""
-    p = sub.add_parser("bench", help="benchmarks of the estimator (accuracy against time)",
-                       description="Benchmarks of jaxcos itself.")
-    bench = p.add_subparsers(dest="benchmark", required=True, metavar="BENCHMARK")
-    a = bench.add_parser("accuracy", help="error, unfinished energy, forward and Jacobian time against the budget",
-                         description="Sweep walks per incidence and bounces, with exact and Monte Carlo single "
-                         "scattering, for dewy1 and matte2 on the standard grid against a high-budget reference, "
-                         "and fit a synthetic set at several budgets; writes " + ", ".join(FILES) + " under DIR. "
-                         "The full run took 11 minutes on a quiet two-core machine, the fits 3.5 of them.")
-    a.add_argument("--out", required=True, metavar="DIR")
-    a.add_argument("--quick", action="store_true", help="tiny budgets, one product, one fit (a smoke test of about a minute): the numbers mean nothing")
-    a.add_argument("--force", action="store_true", help="overwrite existing results in DIR")
-    a.set_defaults(func=_cmd_accuracy)
