@@ -67,7 +67,7 @@ def _lm_trace(problem, x0, max_steps=40):
 def _starts(meas, problem):
     """The fit's fixed starts for ``meas`` (:func:`jaxcos.inference._fit.fixed_starts`): ``{key: Layer values}``."""
     tilt = highlight_tilt(meas) if "theta_p" in problem.param.names else None
-    return {key: values for key, _, values in fixed_starts(2, 16.0, tilt, problem.connection)}
+    return {start.key: start.values for start in fixed_starts(2, 16.0, tilt, problem.connection)}
 
 
 def bench(product, max_powell=4000):
@@ -80,7 +80,7 @@ def bench(product, max_powell=4000):
         x0 = full.param.from_material(jaxcos.Material(layers=(jaxcos.Layer(**values),)))
         r = _compare(problem, meas, x0, max_powell)
         records.append(dict(product=product, start=name, n_params=int(problem.param.size),
-                            n_points=int(meas.n_points), full_fit=dict(time_s=t_full, record=full.record), **r))
+                            n_points=int(meas.n_points), full_fit=dict(time_s=t_full, record=full.record.to_json()), **r))
     return records
 
 
@@ -112,7 +112,7 @@ def _compare(problem, meas, x0, max_powell):
     same = max(loss_lm, loss_pw)
     t_lm_same = next((t for t, loss in trace if loss <= same * (1 + 1e-6)), t_lm)
     t_pw_same = next(t for t, loss in powell_trace if loss <= same * (1 + 1e-6))
-    checked = {name: check(problem, meas, x, key=jax.random.key(12345), walks=CHECK_FACTOR * problem.walks)
+    checked = {name: check(problem, meas, x, key=jax.random.key(12345), walks=CHECK_FACTOR * problem.walks).to_json()
                for name, x in (("lm", x_lm), ("powell", x_pw))}
     return dict(check=checked, forward_s=fwd, jacobian_s=jac, jacobian_in_forwards=jac / fwd,
                 lm=dict(time_s=t_lm, loss=loss_lm, steps=steps, accepted=accepted,

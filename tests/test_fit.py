@@ -54,7 +54,7 @@ def _synthetic(material, start, seed=7, rel=0.05, add=0.005):
 def _delta_chi2(result, truth=TRUTH):
     """``loss(truth) - loss(fit)`` under the fit's own objective (same key, weights, lobe probabilities)."""
     x_true = result.param.from_material(truth)
-    return float(result.problem.loss(x_true)) - result.record["loss"]
+    return float(result.problem.loss(x_true)) - result.record.loss
 
 
 # For Gaussian noise, ``loss(truth) - loss(optimum)`` is chi-square distributed
@@ -83,7 +83,7 @@ def test_fit_recovers_known_parameters():
     assert -SLACK <= delta < CHI2_BOUND, delta
     dof = data.values.size - result.param.size
     # The data carry noise but no Monte Carlo error against this model (same key): judge by the noise alone.
-    assert chi2.ppf(1e-4, dof) / dof < result.record["reduced_chi2_noise_only"] < chi2.ppf(1 - 1e-4, dof) / dof
+    assert chi2.ppf(1e-4, dof) / dof < result.record.reduced_chi2_noise_only < chi2.ppf(1 - 1e-4, dof) / dof
 
 
 @pytest.mark.slow
@@ -182,20 +182,20 @@ def test_check_subtracts_its_own_monte_carlo_error():
     problem = make_problem(meas, param, key=jax.random.key(0), walks=CHECK_WALKS, bounces=BOUNCES, reference=TRUTH)
     x = param.from_material(TRUTH)
     checks = [check(problem, meas, x, key=jax.random.key(100 + k), walks=CHECK_WALKS) for k in range(CHECK_KEYS)]
-    raw = np.array([c["chi2"] for c in checks])
-    corrected = raw - np.array([c["chi2_mc"] for c in checks])
-    ref_var = np.mean([c["chi2_mc"] for c in checks]) * CHECK_WALKS / REF_WALKS
+    raw = np.array([c.chi2 for c in checks])
+    corrected = raw - np.array([c.chi2_mc for c in checks])
+    ref_var = np.mean([c.chi2_mc for c in checks]) * CHECK_WALKS / REF_WALKS
     se = np.std(corrected, ddof=1) / np.sqrt(CHECK_KEYS)
     tol = 3 * np.sqrt(se ** 2 + 4 * ref_var) + ref_var
     print(f"\n[check] target {target:.1f}, corrected {corrected.mean():.1f} +- {se:.1f}, raw {raw.mean():.1f}")
     assert abs(corrected.mean() - target) < tol
     assert raw.mean() - target > 3 * np.std(raw, ddof=1) / np.sqrt(CHECK_KEYS)
     dof = values.size - param.size
-    np.testing.assert_allclose(checks[0]["reduced_chi2"], corrected[0] / dof)
+    np.testing.assert_allclose(checks[0].reduced_chi2, corrected[0] / dof)
     # The reported standard error describes the spread of material_chi2 across keys. Both sides are
     # estimates: the spread's variance has a relative SE of sqrt((kurtosis - 1) / keys), the mean of
     # the reported variances that of their own spread over sqrt(keys); on the log of the roots, half.
-    reported = np.array([c["material_chi2_se"] for c in checks]) ** 2
+    reported = np.array([c.material_chi2_se for c in checks]) ** 2
     centred = corrected - corrected.mean()
     kurtosis = np.mean(centred ** 4) / np.mean(centred ** 2) ** 2
     log_se = 0.5 * np.hypot(np.sqrt((kurtosis - 1) / CHECK_KEYS),
@@ -254,7 +254,7 @@ def test_levenberg_marquardt_linearises_only_at_accepted_steps():
     for steps in (5, 10, 20):
         jacobians.clear()
         ours = run(LevenbergMarquardt(rtol=0.0, atol=0.0, loss_rtol=0.0), steps)
-        accepted = int(ours.state[0].num_accepted_steps)
+        accepted = int(ours.state.num_accepted_steps)
         assert 0 < accepted < steps  # both kinds of step occur
         assert len(jacobians) == accepted  # one Jacobian per accepted step (its rule runs once for all tangents)
         theirs = run(optx.LevenbergMarquardt(rtol=0.0, atol=0.0), steps)
@@ -442,7 +442,7 @@ def test_each_pass_takes_its_lobe_probabilities_where_it_starts(monkeypatch):
 
     monkeypatch.setattr(fitting, "solve_lm", spy)
     result = fit(_synthetic(TRUTH, START), variant="single_lobe", walks=16, bounces=16, jacobian_walks=8, starts=2)
-    assert fitting.PASSES == 2 and len(calls) == 2 * result.record["starts_refined"] == 4
+    assert fitting.PASSES == 2 and len(calls) == 2 * result.record.starts_refined == 4
     # the unscreened start is refined in a second thread: its passes and the screened start's interleave
     pairs = [(a, b) for a in calls for b in calls if np.array_equal(b[1], a[2])]
     assert len(pairs) == 2

@@ -23,7 +23,8 @@ def _cmd_eval(args):
     run_eval(args)
 
 
-def _add_budget(p, default):
+def add_budget(p, default):
+    """Add ``--budget NAME`` (a named Monte Carlo budget; ``default``: the name the help gives) to the parser ``p``."""
     from ..model import BUDGETS
 
     named = ", ".join(f"{name} ({w} walks x {b} bounces)" for name, (w, b) in BUDGETS.items())
@@ -40,7 +41,7 @@ def _add_eval(sub):
     p.add_argument("--out", required=True, metavar="OUT.csv")
     p.add_argument("--walks", type=int, default=None, help="walks per incidence direction (default: the library default)")
     p.add_argument("--bounces", type=int, default=None, help="bounces per walk (default: the library default)")
-    _add_budget(p, "paper")
+    add_budget(p, "paper")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quantity", choices=("brdf", "reflectance_factor"), default="brdf",
                    help="write f (1/sr) or the reflectance factor pi*f")
@@ -97,7 +98,7 @@ def _add_plot(sub):
     p.set_defaults(func=_cmd_plot)
 
 
-# --- fit -------------------------------------------------------------------------
+# --- shared by the commands ------------------------------------------------------
 
 
 def progress(command):
@@ -110,64 +111,6 @@ def progress(command):
         print(f"jaxcos {command} [{time.perf_counter() - start:6.1f} s]: {message}", file=sys.stderr, flush=True)
 
     return say
-
-
-def _cmd_fit(args):
-    from ..inference import FIT_BOUNCES, FIT_WALKS, fit
-    from ..io import load_params
-    from ..model import check_variant
-    from ..io import load_measurements
-    from ..report import FIT_FILES, write_fit
-    from ..model import resolve_budget
-
-    check_variant(args.variant)
-    walks, bounces = resolve_budget(args.budget, walks=args.walks, bounces=args.bounces,
-                                    default=(FIT_WALKS, FIT_BOUNCES))
-    if args.jacobian_walks < 1:
-        raise InputError(f"--jacobian-walks must be a positive integer, not {args.jacobian_walks}.")
-    refuse_overwrite([os.path.join(args.out, name) for name in FIT_FILES], args.force)
-    meas = load_measurements(args.measurements)
-    start = load_params(args.start) if args.start else None
-    result = fit(meas, variant=args.variant, method=args.method, seed=args.seed, walks=walks, bounces=bounces,
-                 jacobian_walks=args.jacobian_walks, starts=args.starts, fit_t=args.fit_t, fit_phi=args.fit_phi,
-                 start=start, t=args.t, progress=progress("fit"))
-    write_fit(result, meas, args.out, force=args.force)
-    r = result.record
-    chi2 = (f", reduced chi-square {r['reduced_chi2']:.2f}" if "reduced_chi2" in r
-            else " (unweighted: the file has no std; report.md says which points carry the loss)")
-    if "reduced_chi2" in r["check"]:
-        chi2 += f" ({r['check']['reduced_chi2']:.2f} +- {r['check']['reduced_chi2_se']:.2f} under independent keys)"
-    print(f"fitted {r['variant']} to {r['n_points']} points in {r['time_s']:.1f} s: L2 {r['l2']:.4g}, "
-          f"RMSE {r['rmse']:.4g}{chi2}; {r['starts_at_optimum']} of {r['starts_refined']} refined starts agree. "
-          f"Wrote {', '.join(os.path.join(args.out, n) for n in FIT_FILES)}.")
-
-
-def _add_fit(sub):
-    from ..inference import FIT_BOUNCES, FIT_JACOBIAN_WALKS, FIT_WALKS
-
-    p = sub.add_parser("fit", help="fit a layered material to a measurement CSV",
-                       description="Fit a one-layer cosmetic material to MEASUREMENTS.csv by Levenberg-Marquardt "
-                       "(or the Powell baseline) from a multi-start; writes DIR/params.json, DIR/report.md, DIR/fit.png.")
-    p.add_argument("measurements", metavar="MEASUREMENTS.csv")
-    p.add_argument("--out", required=True, metavar="DIR")
-    p.add_argument("--variant", default="two_lobe",
-                   help="two_lobe (default), single_lobe, diffusers_only or platelets_only")
-    p.add_argument("--method", choices=("lm", "powell"), default="lm")
-    p.add_argument("--seed", type=int, default=0, help="seeds the Monte Carlo key and the random starts")
-    p.add_argument("--walks", type=int, default=None, help=f"walks per incidence direction (default {FIT_WALKS})")
-    p.add_argument("--bounces", type=int, default=None, help=f"bounces per walk (default {FIT_BOUNCES})")
-    p.add_argument("--jacobian-walks", type=int, default=FIT_JACOBIAN_WALKS, metavar="N",
-                   help=f"walks of the Jacobian, the first of the objective's walks (default {FIT_JACOBIAN_WALKS})")
-    _add_budget(p, "accurate")
-    p.add_argument("--starts", type=int, default=15,
-                   help="starts screened besides the default one: one of broad tilted platelets, the rest random "
-                        "(default 15)")
-    p.add_argument("--start", metavar="PARAMS", help="start from this params.json instead of the multi-start")
-    p.add_argument("--t", type=float, default=16.0, help="optical thickness when it is not fitted (default 16)")
-    p.add_argument("--fit-t", action="store_true", help="also fit the optical thickness t")
-    p.add_argument("--fit-phi", action="store_true", help="also fit the tilt azimuth phi_p (default: held at 0)")
-    p.add_argument("--force", action="store_true", help="overwrite an existing result in DIR")
-    p.set_defaults(func=_cmd_fit)
 
 
 # --- registry ----------------------------------------------------------------------
@@ -186,7 +129,7 @@ def _from(module):
 # One entry per command, in the order of ``jaxcos --help``.
 _COMMANDS = [
     _add_eval,
-    _add_fit,
+    _from("._fit"),
     _add_import,
     _add_plot,
     _from("._posterior"),

@@ -2,36 +2,44 @@
 
 The objective is the sum of squared residuals ``(model - measured) / std``
 (``std = 1`` when the file has no standard deviations), in the file's own
-quantity, over every measured point and colour channel. The model is the
-Monte Carlo BSDF under a fixed key and fixed lobe-selection probabilities
-(common random numbers), so the objective is a deterministic, smooth function
-of the parameters and its Jacobian comes from forward-mode differentiation of
-the walk (of its first :data:`FIT_JACOBIAN_WALKS` walks: a descent direction
-needs no more). The lobe probabilities and the Monte Carlo share of the
-weights are fixed numbers within a solver pass, set again at the start of
-each of :data:`PASSES` passes. Each refined start is then checked under
-independent keys (:func:`check`), which a fit cannot have tuned itself to,
-and the best one takes a last Gauss-Newton step on its check's pooled
-residuals (:func:`gauss_newton_step`), kept where a check under fresh keys says it
-is better.
+quantity (docs/formats.md), over every measured point and colour channel. The
+model is the Monte Carlo BSDF of docs/model.md under a fixed key and fixed
+lobe-selection probabilities (common random numbers), so the objective is a
+deterministic, smooth function of the parameters and its Jacobian comes from
+forward-mode differentiation of the walk (of its first
+:data:`FIT_JACOBIAN_WALKS` walks: a descent direction needs no more). The lobe
+probabilities and the Monte Carlo share of the weights are fixed numbers
+within a solver pass, set again at the start of each of :data:`PASSES`
+passes.
 
-Parameters are mapped to unbounded coordinates so every iterate is physical:
-``c_d``, ``w_g`` and albedos by a logistic function onto ``(0, 1)``, ``g1``,
-``g2`` by ``tanh`` onto ``(-0.9999, 0.9999)``, ``alpha_p`` onto ``(1e-4, 1)``, ``theta_p``
-onto ``(0, 90)`` degrees, ``t`` by ``exp``, ``phi_p`` by ``180 tanh``.
+:func:`fit` is a pipeline of named stages: :func:`screen` (a few steps from
+every start, ranked), the refinement of the best (:class:`Refiner`,
+:data:`PASSES` passes each), :func:`select` (every refined start checked under
+independent keys, which a fit cannot have tuned itself to; the best check
+wins), :func:`polish` (a last Gauss-Newton step on the winner's pooled check
+residuals, kept where a check under fresh keys says it is better) and
+:func:`summarise` (a :class:`FitResult` with its typed :class:`FitRecord`).
+Why each stage is there, with the measurements that decided it:
+docs/method.md.
+
+Parameters are mapped to unbounded coordinates so every iterate is physical
+(:data:`_RANGES`): ``c_d``, ``w_g``, the albedos, ``alpha_p`` and ``theta_p``
+(degrees) by a logistic function onto their range, ``g1``, ``g2`` and
+``phi_p`` (degrees) by a scaled ``tanh``, ``t`` by ``exp``.
 
 Example::
 
     import jaxcos
     meas = jaxcos.load_measurements("measurements/dewy1.csv")
     result = jaxcos.fit(meas)
-    result.material, result.record["reduced_chi2"]
+    result.material, result.record.check.reduced_chi2
 """
 
 import concurrent.futures
 import dataclasses
 import threading
 import time
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -41,66 +49,51 @@ import numpy as np
 import optimistix as optx
 
 from .._errors import InputError
-from ..model import Layer, Material, check_variant
+from ..model import FIXED, Layer, Material, check_variant
 from ..model import lobe_probabilities, make_query, simulate
 
 FIT_WALKS = 1024
 """Walks per incidence direction of the objective's value in a fit (the
 ``accurate`` budget). Under one fixed key a fit follows the Monte Carlo error
 of its estimate, which is correlated across the outgoing angles of an
-incidence and looks like a change of the parameters: at 256 walks (error
-about twice a 2% measurement noise) the fitted materials of the bundled sets
-scored reduced chi-square 2.5-3.4 under an independent key, at 1024 walks
-1.8-2.2 (the truth: 1.0-1.15), with the single-pass fit of that time; the
-current fit's materials score 1.07-1.92 before its last step and 1.05-1.68
-after it (:data:`FINAL_DAMPING`). About 90% of the error's variance is one
-offset per incidence (benchmarks/RESULTS.md). The fit puts the remaining
-error into the likelihood (see :func:`with_mc_error`) and reports it."""
+incidence and looks like a change of the parameters; the fit puts the
+remaining error into the likelihood (:func:`with_mc_error`) and reports it
+(docs/method.md, "The fit's objective")."""
 FIT_JACOBIAN_WALKS = 128
 """Walks of the objective's Jacobian: the first 128 of the objective's own
 walks (same key). Levenberg-Marquardt needs a good descent direction, not an
-exact slope; its steps are accepted on the value. A Jacobian at 128 walks
-costs an eighth of one at 1024, and the fit is faster than one at 256 walks
-throughout (dewy1: 44 s against 63 s)."""
+exact slope; its steps are accepted on the value (docs/method.md)."""
 FIT_BOUNCES = 128
-"""Bounces per walk in a fit: at most 3.7e-3 of the energy is left in
-unfinished walks for the four published products (256 bounces: 2.2e-5), at
-half the cost; every fit reports what its walks left unfinished."""
+"""Bounces per walk in a fit; every fit reports the energy its walks left
+unfinished (docs/method.md, "Monte Carlo budget")."""
 
 PASSES = 2
 """Solver passes per refined start. A pass holds the lobe-selection
 probabilities and the Monte Carlo share of the weights fixed, at their values
 at its start (:func:`with_mc_error`); a start far from the optimum sets them
-badly (a near-mirror start samples the platelet lobe where the optimum
-scatters in the diffusers), so each further pass sets them again where the
-previous one ended. On the bundled sets the second pass took the material's
-reduced chi-square under an independent key from 1.80 to 1.16 (dewy1) and
-from 1.37 to 1.09 (matte1), the truth's being 1.0-1.15, and dewy2's
-highlight start from a check chi-square of 61896 to 7058 (of which 6500 the
-check's own Monte Carlo error); a third pass changed little."""
+badly, so each further pass sets them again where the previous one ended
+(docs/method.md)."""
 SCREEN_STEPS = 5
 """Levenberg-Marquardt steps each start gets in the screen (at half the Jacobian's walks, a quarter of the bounces)."""
 CHECK_FACTOR = 16
 """Every refined start is checked with this many times the fit's walks under independent keys
 (:func:`check`). The fit is the start whose ``material_chi2`` there is lowest, allowing for the check's
-uncertainty: its bound ``material_chi2 + 2 material_chi2_se`` is lowest (not its loss, which another
-key need not reproduce). A material whose estimate rare walks dominate (a near-mirror lobe) cannot
-win on a lucky batch. With :data:`CHECK_BATCHES` batches each batch has the fit's own walks, so the check
-runs the program that sets the fit's weights, with nothing more to compile. At 4 times the walks (batches of
-256, a program of their own) a check of the two refined starts took about 3 s less (dewy1: 2 x 2.2 s and
-about 2.5 s compiling, against 2 x 5.0 s) for twice the standard error (dewy1's material 1.18 +- 0.09
-against 1.23 +- 0.05, dewy2's 1.66 +- 0.23 against 1.66 +- 0.09)."""
+uncertainty: its bound ``material_chi2 + 2 material_chi2_se`` (:attr:`CheckResult.bound`) is lowest (not
+its loss, which another key need not reproduce), so a material whose estimate rare walks dominate (a
+near-mirror lobe) cannot win on a lucky batch. With :data:`CHECK_BATCHES` batches each batch has the
+fit's own walks, so the check runs the program that sets the fit's weights, with nothing more to
+compile (docs/method.md, "Checks under independent keys")."""
 FINAL_DAMPING = 0.1
 """Marquardt damping of the fit's last step (:func:`gauss_newton_step`): one damped Gauss-Newton step on the
 pooled residuals of the best start's check, kept where a check of its own, under fresh keys, scores it
-better. Under one fixed key the fit follows that key's Monte Carlo error; the check's pooled model has a
-sixteenth of its variance. On the bundled sets (seed 0, reduced chi-square of the material under yet another
-key) the step took dewy1 from 1.19 to 1.16, dewy2 from 1.74 to 1.47, matte1 from 1.09 to 1.08 and matte2
-from 1.37 to 1.28; a synthetic dewy2-like product from 1.86 to 1.35 (its truth 1.10). Damping 0.03-1 did
-about as well; undamped it took matte2 to 6 (benchmarks/RESULTS.md)."""
+better. Under one fixed key the fit follows that key's Monte Carlo error; the check's pooled model has
+``1 / CHECK_FACTOR`` of its variance. Undamped, the step runs along directions the data hardly constrain
+(docs/method.md, "The last step")."""
 CHECK_BATCHES = 16
 """The check's walks run in this many batches under independent keys: pairs of batches estimate
 the material's chi-square and its standard error (:func:`_pair_chi2`)."""
+METHODS = ("lm", "powell")
+"""The solvers of :func:`fit`: Levenberg-Marquardt (optimistix) and SciPy's modified Powell (the paper's)."""
 
 # Free parameters of each variant, in order; sizes follow.
 _FREE = {
@@ -121,14 +114,26 @@ _PLATELET_START = dict(c_d=0.3, theta_p=45.0, alpha_p=0.5)
 _MIRROR_START = dict(c_d=0.9, alpha_p=0.003)
 NARROW_RATIO = 1.5
 """A highlight is narrower than the angular sampling (:func:`narrow_highlight`) when, in the median
-over incidences, its brightest point exceeds both neighbours by more than this factor. On the bundled
-sets: dewy2 (``alpha_p = 0.002``) 2.5-2.7 on four of its five incidences; dewy1, matte1 and matte2
-(``alpha_p`` 0.13-0.49) at most 1.1."""
-_VARIANT_FIXED = {"two_lobe": {}, "single_lobe": {"w_g": 1.0, "g2": 0.0},
-                  "diffusers_only": {"c_d": 1.0}, "platelets_only": {"c_d": 0.0}}
+over incidences, its brightest point exceeds both neighbours by more than this factor (docs/method.md,
+"Near-mirror highlights")."""
+# TEMPORARY until jaxcos.model.FIXED holds it: a single-lobe fit has always written g2 = 0, the lobe
+# it does not simulate (FIXED["single_lobe"] fixes w_g alone). Delete once FIXED gains "g2": 0.0.
+_FIXED_PENDING = {"single_lobe": {"g2": 0.0}}
 _EPS = 1e-5
 _G_MAX = 0.9999  # |g| = 1 is a delta function: the map keeps float32 iterates off it
 _ALPHA_MIN = 1e-4  # alpha_p = 0 is a mirror with no width
+
+_RANGES = {
+    # name: (map, low, high). The physical range of a fitted parameter, the support of a uniform prior
+    # (Parameterization.bounds), and how its unbounded coordinate x reaches it: "logistic",
+    # low + (high - low) sigmoid(x); "tanh", high tanh(x) (low = -high); "exp", exp(x) onto (0, inf),
+    # ``high`` bounding the prior alone. theta_p and phi_p in degrees (docs/model.md section 2).
+    "c_d": ("logistic", 0.0, 1.0), "w_g": ("logistic", 0.0, 1.0),
+    "albedo_d": ("logistic", 0.0, 1.0), "albedo_p": ("logistic", 0.0, 1.0),
+    "alpha_p": ("logistic", _ALPHA_MIN, 1.0), "theta_p": ("logistic", 0.0, 90.0),
+    "g1": ("tanh", -_G_MAX, _G_MAX), "g2": ("tanh", -_G_MAX, _G_MAX), "phi_p": ("tanh", -180.0, 180.0),
+    "t": ("exp", 0.0, 1e3),
+}
 
 
 def _unit_to_x(v):
@@ -136,27 +141,23 @@ def _unit_to_x(v):
     return np.log(v) - np.log1p(-v)
 
 
-_BOUNDS = {
-    # name: the physical range that the transforms below map onto
-    "c_d": (0.0, 1.0), "w_g": (0.0, 1.0), "albedo_d": (0.0, 1.0), "albedo_p": (0.0, 1.0),
-    "alpha_p": (_ALPHA_MIN, 1.0), "g1": (-_G_MAX, _G_MAX), "g2": (-_G_MAX, _G_MAX), "theta_p": (0.0, 90.0),
-    "t": (0.0, 1e3), "phi_p": (-180.0, 180.0),
-}
+def _transforms(kind, low, high):
+    """``(x -> value, value -> x)`` of a :data:`_RANGES` entry; the inverse works in the value's own dtype."""
+    if kind == "logistic":
+        return (lambda x: low + (high - low) * jax.nn.sigmoid(x),
+                lambda v: _unit_to_x((np.asarray(v) - low) / (high - low)))
+    if kind == "tanh":
+        return (lambda x: high * jnp.tanh(x),
+                lambda v: np.arctanh(np.clip(np.asarray(v) / high, -1 + _EPS, 1 - _EPS)))
+    return jnp.exp, lambda v: np.log(np.maximum(v, _EPS))
 
-_TRANSFORMS = {
-    # name: (x -> value, value -> x)
-    "c_d": (jax.nn.sigmoid, _unit_to_x),
-    "w_g": (jax.nn.sigmoid, _unit_to_x),
-    "albedo_d": (jax.nn.sigmoid, _unit_to_x),
-    "albedo_p": (jax.nn.sigmoid, _unit_to_x),
-    "alpha_p": (lambda x: _ALPHA_MIN + (1.0 - _ALPHA_MIN) * jax.nn.sigmoid(x),
-                lambda v: _unit_to_x((np.asarray(v) - _ALPHA_MIN) / (1.0 - _ALPHA_MIN))),
-    "g1": (lambda x: _G_MAX * jnp.tanh(x), lambda v: np.arctanh(np.clip(np.asarray(v) / _G_MAX, -1 + _EPS, 1 - _EPS))),
-    "g2": (lambda x: _G_MAX * jnp.tanh(x), lambda v: np.arctanh(np.clip(np.asarray(v) / _G_MAX, -1 + _EPS, 1 - _EPS))),
-    "theta_p": (lambda x: 90.0 * jax.nn.sigmoid(x), lambda v: _unit_to_x(np.asarray(v) / 90.0)),
-    "t": (jnp.exp, lambda v: np.log(np.maximum(v, _EPS))),
-    "phi_p": (lambda x: 180.0 * jnp.tanh(x), lambda v: np.arctanh(np.clip(np.asarray(v) / 180.0, -1 + _EPS, 1 - _EPS))),
-}
+
+_TRANSFORMS = {name: _transforms(*entry) for name, entry in _RANGES.items()}
+
+
+def fixed_values(variant):
+    """The values ``variant`` fixes (``jaxcos.model.FIXED``), as a fit writes them."""
+    return {**FIXED[variant], **_FIXED_PENDING.get(variant, {})}
 
 
 class Parameterization(eqx.Module):
@@ -230,7 +231,7 @@ class Parameterization(eqx.Module):
 
     def bounds(self):
         """``(low, high)``: the physical range of each :meth:`labels` entry, the support of a uniform prior."""
-        lows, highs = zip(*[_BOUNDS[n] for n in self.names for _ in range(_SIZE.get(n, 1))])
+        lows, highs = zip(*[_RANGES[n][1:] for n in self.names for _ in range(_SIZE.get(n, 1))])
         return np.array(lows), np.array(highs)
 
     def from_material(self, material):
@@ -240,14 +241,17 @@ class Parameterization(eqx.Module):
 
 
 def parameterization(variant="two_lobe", *, fit_t=False, fit_phi=False, template=None):
-    """The :class:`Parameterization` of ``variant``; non-fitted values come from ``template`` or the defaults."""
+    """The :class:`Parameterization` of ``variant``; non-fitted values come from ``template`` or the defaults.
+
+    The values the variant fixes (:func:`fixed_values`) override both.
+    """
     check_variant(variant)
     names = _FREE[variant] + (("t",) if fit_t else ()) + (("phi_p",) if fit_phi else ())
     base = dict(_DEFAULT)
     if template is not None:
         layer = template.layers[0]
         base.update({k: np.asarray(getattr(layer, k)) for k in _DEFAULT})
-    base.update(_VARIANT_FIXED[variant])
+    base.update(fixed_values(variant))
     fixed = {k: jnp.asarray(v, dtype=jnp.result_type(float)) for k, v in base.items() if k not in names}
     return Parameterization(variant=variant, names=names, fixed=fixed)
 
@@ -259,9 +263,10 @@ class Problem(eqx.Module):
     """Everything the residuals need: the data, the query, the budget, the key.
 
     ``residuals(x)`` are ``(model - measured) / std``, flattened over points
-    and channels; ``model`` is in the file's quantity. Their value uses
-    ``walks`` walks; their Jacobian (forward mode) the first
-    ``jacobian_walks`` of them (all when ``None``).
+    and channels; ``model`` is in the file's quantity (``scale`` times the
+    BSDF, :func:`_quantity_scale`). Their value uses ``walks`` walks; their
+    Jacobian (forward mode) the first ``jacobian_walks`` of them (all when
+    ``None``).
     """
 
     param: Parameterization
@@ -313,16 +318,13 @@ def _jacobian(problem, x):
     """The residuals' Jacobian ``(M, P)`` at ``x`` and the residuals it comes with.
 
     Batched forward mode, materialised once: linearising the walk instead
-    would store every bounce's intermediates (gigabytes). With
+    would store every bounce's intermediates. With
     ``jacobian_walks < walks`` it is that of the first ``jacobian_walks`` walks
     (the walks' random numbers do not depend on their count, see
     ``_walk._uniforms``), and so are the residuals returned with it. The colour
     channels' columns share tangents (:meth:`Parameterization.colouring`). The
-    incidences are walked one after another: on the standard grid at the
-    paper's budget the Jacobian then takes a quarter less time than with all
-    incidences vectorised, likely because one incidence's tallies with their
-    tangents stay in cache (not profiled); one evaluation is fastest
-    vectorised.
+    incidences are walked one after another (``incidence_batch=1``), which
+    was faster than vectorising them (benchmarks/RESULTS.md, decision records).
     """
     sub = dataclasses.replace(problem, walks=_jacobian_walks(problem), incidence_batch=1)
     fn = lambda v: _residuals.fun(sub, v)
@@ -342,6 +344,14 @@ def _residuals_jvp(primals, tangents):
     return y, jac @ dx
 
 
+def _quantity_scale(meas):
+    """The factor from a BSDF ``f`` (1/sr) to the quantity of ``meas``: ``pi`` for a reflectance factor, else 1.
+
+    A reflectance factor is ``pi f`` (docs/formats.md, "Measurements").
+    """
+    return float(np.pi) if meas.quantity == "reflectance_factor" else 1.0
+
+
 def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe_probs=None, reference=None,
                  jacobian_walks=None, connection=None):
     """The least-squares :class:`Problem` of fitting ``param`` to measurements ``meas``.
@@ -352,10 +362,10 @@ def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe
     ``"mis"`` where the data show a highlight narrower than their angular
     sampling (:func:`narrow_highlight`), else ``"nee"``. There, next-event
     estimation through the near-mirror lobe is so spiky that under a fixed
-    key at the fit's budget the truth is not a minimum of the objective
-    (dewy2: its loss 912.7 against 275.9 at a wrong material; ``"mis"``
-    removes the spikes at about 1.5 times the cost of an evaluation, and is
-    not spent where the highlight is broad).
+    key at the fit's budget the truth need not be a minimum of the
+    objective; ``"mis"`` removes the spikes at a higher cost per evaluation,
+    not spent where the highlight is broad (docs/method.md, "Near-mirror
+    highlights").
     """
     if connection is None:
         connection = "mis" if narrow_highlight(meas) else "nee"
@@ -371,7 +381,7 @@ def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe
         query=make_query(meas.theta_i, meas.theta_o, meas.phi_o),
         measured=jnp.asarray(meas.values, dtype),
         sigma=jnp.asarray(sigma, dtype),
-        scale=float(np.pi) if meas.quantity == "reflectance_factor" else 1.0,
+        scale=_quantity_scale(meas),
         key=key,
         lobe_probs=jnp.asarray(lobe_probs, dtype),
         walks=walks,
@@ -384,29 +394,60 @@ def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe
 # --- solvers ----------------------------------------------------------------------
 
 
-class LevenbergMarquardt(optx.AbstractGaussNewton):
-    """optimistix's Levenberg-Marquardt, with a Jacobian only where a step is accepted, and a stop on the loss.
+class LevenbergMarquardtState(eqx.Module):
+    """The state of :class:`LevenbergMarquardt` between steps.
 
-    The trust region accepts or rejects a step on the value at the new point
-    alone; optimistix's Gauss-Newton step linearises there too. About half of
-    this fit's steps are rejected: near the optimum the 128-walk Jacobian's
-    slope is not the 1024-walk value's, and the region shrinks for several
-    steps in a row. This solver evaluates the value first and computes the
-    Jacobian (materialised, by forward mode; :func:`_jacobian` when ``args``
-    is the :class:`Problem` whose residuals ``fn`` returns) only when the step
-    is accepted, so a rejected step costs one evaluation instead of a
-    Jacobian. Otherwise
-    it is optimistix's algorithm: its damped Newton descent, classical trust
-    region and Cauchy termination.
+    Attributes:
+        first_step: whether no step has been taken yet (the trust region accepts the first).
+        y_eval: the point the next step evaluates.
+        search_state: the trust region's state (``optx.ClassicalTrustRegion``).
+        f_info: the residuals and Jacobian (a matrix) at the last accepted point.
+        aux: ``fn``'s auxiliary output there.
+        descent_state: the damped Newton descent's state (``optx.DampedNewtonDescent``).
+        terminate: whether the solve has ended; ``result`` says how.
+        num_steps, num_accepted_steps, num_steps_since_acceptance: step counts.
+        small_steps: consecutive accepted steps that lowered the loss by less than ``loss_rtol``.
+    """
+
+    first_step: jnp.ndarray
+    y_eval: jnp.ndarray
+    search_state: object
+    f_info: optx.FunctionInfo.ResidualJac
+    aux: object
+    descent_state: object
+    terminate: jnp.ndarray
+    result: optx.RESULTS
+    num_steps: jnp.ndarray
+    num_accepted_steps: jnp.ndarray
+    num_steps_since_acceptance: jnp.ndarray
+    small_steps: jnp.ndarray
+
+
+class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
+    """Levenberg-Marquardt with a Jacobian only where a step is accepted, and a stop on the loss.
+
+    Built from optimistix's public pieces: its damped Newton descent
+    (``optx.DampedNewtonDescent``), classical trust region
+    (``optx.ClassicalTrustRegion``) and Cauchy termination on ``y`` and the
+    residuals, driven by ``optx.least_squares`` (which sets ``max_steps``),
+    with a state of its own (:class:`LevenbergMarquardtState`). Its iterates
+    are those of ``optx.LevenbergMarquardt``; what differs is when the
+    Jacobian is computed: the trust region accepts or rejects a step on the value at the
+    new point alone, so this solver evaluates the value first and computes
+    the Jacobian (materialised, by forward mode; :func:`_jacobian` when
+    ``args`` is the :class:`Problem` whose residuals ``fn`` returns) only
+    when the step is accepted. A rejected step then costs one evaluation
+    instead of a Jacobian; near the optimum many steps are rejected, the
+    few-walk Jacobian's slope not being the full value's.
 
     Under a fixed key the objective is rough along the parameters that move
     sampled directions (``docs/derivatives.md``). Near its optimum LM then
     creeps: the damping grows after a few rejected steps, and each accepted
-    step lowers the loss by a few hundredths of a chi-square unit, far below
-    what the data can tell apart. So this solver also stops after
-    ``patience`` consecutive accepted steps that each lowered the loss by less
-    than ``loss_rtol`` of it, and after a rejected step already within the
-    tolerance on ``y`` (a smaller region would propose a smaller one).
+    step lowers the loss far less than the data can tell apart. So this
+    solver also stops after ``patience`` consecutive accepted steps that each
+    lowered the loss by less than ``loss_rtol`` of it, and after a rejected
+    step already within the tolerance on ``y`` (a smaller region would
+    propose a smaller one).
     """
 
     rtol: float
@@ -426,73 +467,77 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
         self.loss_rtol, self.patience = loss_rtol, patience
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        # The Jacobian is kept as a matrix (optimistix keeps a linearised function). optimistix's
-        # init traces a linearisation of fn for the state's structure alone; of the walk's
-        # residuals that took seconds of tracing, so it is given a constant of fn's shape instead.
-        zeros = lambda _y, _args: (jnp.zeros(f_struct.shape, f_struct.dtype),
-                                   jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), aux_struct))
-        state = super().init(zeros, y, args, options, f_struct, aux_struct, tags)
+        # The Jacobian is kept as a matrix; nothing of fn is traced here (a linearisation of the walk
+        # only for the state's structure would take seconds of tracing).
         f_info = optx.FunctionInfo.ResidualJac(
             jnp.zeros(f_struct.shape, f_struct.dtype),
             lx.MatrixLinearOperator(jnp.zeros(f_struct.shape + y.shape, f_struct.dtype), tags))
-        state = eqx.tree_at(lambda s: (s.f_info, s.descent_state), state, (f_info, self.descent.init(y, f_info)))
-        return state, jnp.array(0)
+        return LevenbergMarquardtState(
+            first_step=jnp.array(True), y_eval=y, search_state=self.search.init(y, f_info), f_info=f_info,
+            aux=jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), aux_struct),
+            descent_state=self.descent.init(y, f_info), terminate=jnp.array(False),
+            result=optx.RESULTS.successful, num_steps=jnp.array(0), num_accepted_steps=jnp.array(0),
+            num_steps_since_acceptance=jnp.array(0), small_steps=jnp.array(0))
+
+    def _converged(self, y_diff, y_eval, f_diff, residual):
+        """Cauchy termination: small changes both in ``y`` and in the residuals, in :attr:`norm`."""
+        return ((self.norm(y_diff / (self.atol + self.rtol * jnp.abs(y_eval))) < 1)
+                & (self.norm(f_diff / (self.atol + self.rtol * jnp.abs(residual))) < 1))
 
     def step(self, fn, y, args, options, state, tags):
-        inner, small = state
-        residual, aux = fn(inner.y_eval, args)
-        probe = eqx.tree_at(lambda f: f.residual, inner.f_info, residual)
-        size, accept, found, search_state = self.search.step(inner.first_step, y, inner.y_eval, inner.f_info, probe,
-                                                             inner.search_state)
+        residual, aux = fn(state.y_eval, args)
+        probe = optx.FunctionInfo.ResidualJac(residual, state.f_info.jac)  # the search reads the value alone
+        size, accept, found, search_state = self.search.step(state.first_step, y, state.y_eval, state.f_info, probe,
+                                                             state.search_state)
 
         def accepted(_):
             if isinstance(args, Problem):  # its residuals are fn's; no evaluation at the full budget is traced
-                jac = _jacobian(args, inner.y_eval)[0]
+                jac = _jacobian(args, state.y_eval)[0]
             else:
-                jac = jax.jacfwd(lambda x: fn(x, args)[0])(inner.y_eval)
+                jac = jax.jacfwd(lambda x: fn(x, args)[0])(state.y_eval)
             f_info = optx.FunctionInfo.ResidualJac(residual, lx.MatrixLinearOperator(jac, tags))
-            y_diff, f_diff = inner.y_eval - y, residual - inner.f_info.residual
-            converged = ((self.norm(y_diff / (self.atol + self.rtol * jnp.abs(inner.y_eval))) < 1)
-                         & (self.norm(f_diff / (self.atol + self.rtol * jnp.abs(residual))) < 1))
-            return inner.y_eval, f_info, aux, self.descent.query(inner.y_eval, f_info, inner.descent_state), converged
+            converged = self._converged(state.y_eval - y, state.y_eval, residual - state.f_info.residual, residual)
+            return state.y_eval, f_info, aux, self.descent.query(state.y_eval, f_info, state.descent_state), converged
 
         def rejected(_):
             # a rejected step already within the tolerance on y: the next, in a smaller region, would be too
-            tiny = self.norm(inner.y_eval - y) < self.atol + self.rtol * self.norm(y)
-            return y, inner.f_info, inner.aux, inner.descent_state, tiny
+            tiny = self.norm(state.y_eval - y) < self.atol + self.rtol * self.norm(y)
+            return y, state.f_info, state.aux, state.descent_state, tiny
 
-        before, after = jnp.sum(inner.f_info.residual ** 2), jnp.sum(residual ** 2)
-        self.verbose(num_steps=("Step", inner.num_steps), step_size=("Step size", size),
+        before, after = jnp.sum(state.f_info.residual ** 2), jnp.sum(residual ** 2)
+        self.verbose(num_steps=("Step", state.num_steps), step_size=("Step size", size),
                      loss_this_step=("Loss on this step", 0.5 * after),
                      loss_last_accepted_step=("Loss on the last accepted step", 0.5 * before))
         y, f_info, aux, descent_state, terminate = jax.lax.cond(accept, accepted, rejected, None)
         y_descent, result = self.descent.step(size, descent_state)
-        small = jnp.where(accept & (inner.num_accepted_steps >= 1),
-                          jnp.where(before - after < self.loss_rtol * before, small + 1, 0), small)
-        new = dataclasses.replace(
-            inner, first_step=jnp.array(False), y_eval=y + y_descent, search_state=search_state, f_info=f_info,
-            aux=aux, descent_state=descent_state, terminate=terminate | (small >= self.patience),
+        small = jnp.where(accept & (state.num_accepted_steps >= 1),
+                          jnp.where(before - after < self.loss_rtol * before, state.small_steps + 1, 0),
+                          state.small_steps)
+        new = LevenbergMarquardtState(
+            first_step=jnp.array(False), y_eval=y + y_descent, search_state=search_state, f_info=f_info, aux=aux,
+            descent_state=descent_state, terminate=terminate | (small >= self.patience),
             result=optx.RESULTS.where(found == optx.RESULTS.successful, result, found),
-            num_steps=inner.num_steps + 1, num_accepted_steps=inner.num_accepted_steps + jnp.where(accept, 1, 0),
-            num_steps_since_acceptance=jnp.where(accept, 0, inner.num_steps_since_acceptance + 1))
-        return y, (new, small), aux
+            num_steps=state.num_steps + 1, num_accepted_steps=state.num_accepted_steps + jnp.where(accept, 1, 0),
+            num_steps_since_acceptance=jnp.where(accept, 0, state.num_steps_since_acceptance + 1),
+            small_steps=small)
+        return y, new, aux
 
     def terminate(self, fn, y, args, options, state, tags):
-        return super().terminate(fn, y, args, options, state[0], tags)
+        return state.terminate, state.result
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        return super().postprocess(fn, y, aux, args, options, state[0], tags, result)
+        return y, aux, {}
 
 
 @eqx.filter_jit
 def _lm(problem, x0, max_steps, rtol, atol):
     solver = LevenbergMarquardt(rtol=rtol, atol=atol)
     sol = optx.least_squares(lambda x, p: p.residuals(x), solver, x0, args=problem, max_steps=max_steps, throw=False)
-    inner = sol.state[0]
+    state = sol.state
     # the residuals and Jacobian at the last accepted point, the solution (the first step is always accepted):
     # no further evaluation, and so no further copy of the walk in the compiled program
-    return (sol.value, jnp.sum(inner.f_info.residual ** 2), sol.stats["num_steps"], inner.num_accepted_steps,
-            inner.f_info.jac.as_matrix())
+    return (sol.value, jnp.sum(state.f_info.residual ** 2), sol.stats["num_steps"], state.num_accepted_steps,
+            state.f_info.jac.as_matrix())
 
 
 @eqx.filter_jit
@@ -502,11 +547,11 @@ def _screen(problem, xs, keys):
     The starts run one after another in one compiled loop (``lax.map``): under
     ``vmap`` the walk was traced and compiled several times over, and the
     solver's accept/reject branch became a select that computed the Jacobian
-    at every step (screen compile and run 46.7 s against 29.6 s, under load).
-    Each start samples with its own lobe probabilities: a start far from the
-    default one would otherwise be simulated with the wrong lobes, noisily.
-    Each end is then evaluated under every key of ``keys`` (independent batches,
-    for :func:`_pair_chi2`). Returns the ends ``(S, P)`` and residuals ``(S, K, M)``.
+    at every step (benchmarks/RESULTS.md, decision records). Each start samples with its own lobe probabilities: a
+    start far from the default one would otherwise be simulated with the
+    wrong lobes, noisily. Each end is then evaluated under every key of
+    ``keys`` (independent batches, for :func:`_pair_chi2`). Returns the ends
+    ``(S, P)`` and residuals ``(S, K, M)``.
     """
     def one(x):
         prob = dataclasses.replace(problem, lobe_probs=_lobe_probabilities_at(problem.param, x))
@@ -557,7 +602,7 @@ def _highlights(meas):
 
     ``ratio``: the brightest point's value (mean of r, g, b) over the larger of its
     neighbours' in ``theta_o`` (signed, negative on the light's side). Points with an
-    infinite std (the padding of :func:`jaxcos._ablate.pad_measurements`) are not measured.
+    infinite std (the padding of ``jaxcos.inference.pad_measurements``) are not measured.
     """
     inplane = np.isclose(np.asarray(meas.phi_o, float) % 180.0, 0.0)
     if meas.std is not None:
@@ -606,8 +651,16 @@ def narrow_highlight(meas):
     return bool(ratios) and float(np.median(ratios)) > NARROW_RATIO
 
 
+class FixedStart(NamedTuple):
+    """A fixed start of the fit's screen: its key, what it is, and its :class:`~jaxcos.Layer` values."""
+
+    key: str
+    description: str
+    values: dict
+
+
 def fixed_starts(starts, t, tilt, connection):
-    """The fit's fixed starts, in the screen's order: ``(key, description, Layer values)``.
+    """The fit's fixed starts, in the screen's order: :class:`FixedStart` ``(key, description, Layer values)``.
 
     ``"default"`` (:data:`_DEFAULT`); with ``starts >= 1`` ``"platelet"``, broad
     tilted platelets (``_PLATELET_START``); with ``starts >= 2``, where the
@@ -616,12 +669,12 @@ def fixed_starts(starts, t, tilt, connection):
     (:func:`highlight_tilt`), ``"near-mirror"``, sparse near-mirror platelets at
     that tilt (``_MIRROR_START``). ``t``: the optical thickness of each.
     """
-    out = [("default", "default", {**_DEFAULT, "t": t})]
+    out = [FixedStart("default", "default", {**_DEFAULT, "t": t})]
     if starts >= 1:
-        out.append(("platelet", "broad tilted platelets", {**_DEFAULT, "t": t, **_PLATELET_START}))
+        out.append(FixedStart("platelet", "broad tilted platelets", {**_DEFAULT, "t": t, **_PLATELET_START}))
     if starts >= 2 and tilt is not None and connection == "mis":
-        out.append(("near-mirror", "near-mirror platelets at the highlight's tilt",
-                    {**_DEFAULT, "t": t, **_MIRROR_START, "theta_p": tilt}))
+        out.append(FixedStart("near-mirror", "near-mirror platelets at the highlight's tilt",
+                              {**_DEFAULT, "t": t, **_MIRROR_START, "theta_p": tilt}))
     return out
 
 
@@ -633,9 +686,7 @@ def random_starts(param, n, rng, tilt=None):
     in [0.003, 1], ``theta_p`` in [0, 80] degrees, ``t`` in [1, 30],
     ``phi_p`` 0: clear of the bounds, where the unbounded coordinates
     saturate. ``theta_p`` spans nearly its whole range because the fit's
-    basin in the tilt is narrow for broad lobes: drawn below 30 degrees, it
-    missed a product tilted by 70 (a synthetic matte2 at ``theta_p = 70``
-    scored reduced chi-square 2.64 against its truth's 1.11; now 1.32).
+    basin in the tilt is narrow for broad lobes (docs/method.md, "The search").
 
     With a ``tilt`` (from :func:`highlight_tilt`), a third of them take that
     ``theta_p`` (within half a degree) and a narrow ``alpha_p`` (log-uniform in
@@ -653,33 +704,6 @@ def random_starts(param, n, rng, tilt=None):
                           alpha_p=10 ** rng.uniform(-3, np.log10(0.05)))
         draws.append(np.concatenate([np.atleast_1d(_TRANSFORMS[n_][1](values[n_])) for n_ in param.names]))
     return jnp.asarray(np.reshape(draws, (n, param.size)), dtype=jnp.result_type(float))
-
-
-@dataclasses.dataclass
-class FitResult:
-    """The outcome of :func:`fit`.
-
-    Attributes:
-        material: the fitted material.
-        record: the ``"fit"`` record of docs/formats.md (plus extra keys).
-        model: ``(N, 3)`` the fitted model in the file's quantity.
-        model_std: ``(N, 3)`` its Monte Carlo standard error.
-        starts: per refined start, ``(label, loss, material_chi2, material_chi2_se)`` (the last two
-            from its :func:`check`); the label is
-            the screened start's index (0: the default start) or
-            ``"default, unscreened"`` (``"near-mirror, unscreened"`` where the highlight is
-            narrower than the angular sampling).
-        x: the fitted unbounded coordinates; ``param`` maps them.
-    """
-
-    material: Material
-    record: dict
-    model: np.ndarray
-    model_std: np.ndarray
-    starts: list
-    x: jnp.ndarray
-    param: Parameterization
-    problem: Problem
 
 
 def with_mc_error(problem, meas, x):
@@ -713,8 +737,269 @@ def _lobe_probabilities_at(param, x):
     return lobe_probabilities(param.to_material(x))
 
 
+# --- typed results ------------------------------------------------------------------
+
+
+class _JsonView(dict):
+    """TEMPORARY bridge: a record also reads as its own :meth:`to_json` dictionary.
+
+    For code not yet moved to the attributes: ``record["l2"]``,
+    ``record["check"]["walks"]``, ``"reduced_chi2" in record``,
+    ``record.get(...)``, ``dict(record)`` and ``json.dumps(record)`` see exactly
+    the dictionary a fit wrote before the records were typed. Delete this class
+    (and the base of the records) once nothing reads a record by string key.
+    """
+
+    def __post_init__(self):  # TEMPORARY bridge
+        dict.update(self, self.to_json())
+
+
+def _upper_bound(material_chi2, se):
+    """The number a fit ranks materials by: the pair estimate plus twice its SE (see :data:`CHECK_FACTOR`)."""
+    return material_chi2 + 2 * se
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class CheckResult(_JsonView):
+    """A material evaluated under independent keys against the data (:func:`check`).
+
+    Weights: the measurement std, or none without std columns.
+
+    Attributes:
+        walks, batches, bounces: the check's budget, ``walks`` in all in ``batches`` batches.
+        chi2: the sum of squared weighted residuals of the pooled estimate.
+        chi2_mc: ``chi2 - material_chi2``, the check's own Monte Carlo share.
+        material_chi2: the mean over batch pairs of the weighted sums of
+            ``r_b r_c``, an unbiased estimate of the material's own chi-square.
+        material_chi2_se: its standard error (the jackknife over batches,
+            :func:`_pair_chi2`); large where rare walks dominate the estimate
+            (a near-mirror platelet lobe seen off its mirror direction).
+        l2, rmse: of the pooled estimate (docs/formats.md, "The L2 of the reports").
+        reduced_chi2, reduced_chi2_se: ``material_chi2`` and its SE per degree
+            of freedom; ``None`` without std columns.
+    """
+
+    walks: int
+    batches: int
+    bounces: int
+    chi2: float
+    chi2_mc: float
+    material_chi2: float
+    material_chi2_se: float
+    l2: float
+    rmse: float
+    reduced_chi2: float | None = None
+    reduced_chi2_se: float | None = None
+
+    @property
+    def bound(self):
+        """``material_chi2 + 2 material_chi2_se``: what the fit ranks checked materials by (lower is better)."""
+        return _upper_bound(self.material_chi2, self.material_chi2_se)
+
+    def to_json(self):
+        """The ``"check"`` object of a fit's record in ``params.json`` (docs/formats.md)."""
+        out = dict(walks=self.walks, batches=self.batches, bounces=self.bounces, chi2=self.chi2,
+                   chi2_mc=self.chi2_mc, material_chi2=self.material_chi2, material_chi2_se=self.material_chi2_se,
+                   l2=self.l2, rmse=self.rmse)
+        if self.reduced_chi2 is not None:
+            out.update(reduced_chi2=self.reduced_chi2, reduced_chi2_se=self.reduced_chi2_se)
+        return out
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class FinalStep(_JsonView):
+    """The fit's last step (:func:`polish`): its damping, its checks before and after, whether it was kept.
+
+    ``check_after`` is ``None`` where the step was not finite (and so not taken).
+    """
+
+    damping: float
+    kept: bool
+    check_before: CheckResult
+    check_after: CheckResult | None
+
+    def to_json(self):
+        """The ``"final_step"`` object of a fit's record in ``params.json``."""
+        return dict(damping=self.damping, kept=self.kept, check_before=self.check_before.to_json(),
+                    check_after=None if self.check_after is None else self.check_after.to_json())
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """The Monte Carlo budget of a fit's objective: ``walks`` per incidence, ``bounces`` per walk.
+
+    ``jacobian_walks``: the walks of its Jacobian, the first of the same walks (at most ``walks``).
+    """
+
+    walks: int = FIT_WALKS
+    bounces: int = FIT_BOUNCES
+    jacobian_walks: int = FIT_JACOBIAN_WALKS
+
+    @classmethod
+    def of(cls, walks=FIT_WALKS, bounces=FIT_BOUNCES, jacobian_walks=FIT_JACOBIAN_WALKS):
+        """The budget, ``jacobian_walks`` checked and held to at most ``walks``.
+
+        Raises:
+            InputError: unless ``jacobian_walks`` is a positive integer.
+        """
+        if int(jacobian_walks) != jacobian_walks or jacobian_walks < 1:
+            raise InputError(f"jacobian_walks must be a positive integer, not {jacobian_walks}.")
+        return cls(walks=int(walks), bounces=int(bounces), jacobian_walks=min(int(jacobian_walks), int(walks)))
+
+    @property
+    def screen_walks(self):
+        """The screen's walks: half the Jacobian's, at least 8."""
+        return max(self.jacobian_walks // 2, 8)
+
+    @property
+    def screen_bounces(self):
+        """The screen's bounces: a quarter of the fit's, at least 16."""
+        return max(self.bounces // 4, 16)
+
+    @property
+    def check_walks(self):
+        """The walks of a check (:func:`check`): :data:`CHECK_FACTOR` times ``walks``, in :data:`CHECK_BATCHES` equal batches."""
+        return CHECK_BATCHES * -(-CHECK_FACTOR * self.walks // CHECK_BATCHES)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class FitRecord(_JsonView):
+    """What a fit did and how well it fits: the ``"fit"`` record of ``params.json`` (docs/formats.md).
+
+    Attributes:
+        loss: the objective at the fitted material, under the fit's key.
+        l2, rmse: the paper's L2 (sum of squared differences) and the RMSE, file's quantity.
+        n_points: measured points (each with 3 channels).
+        reduced_chi2: ``loss`` per degree of freedom (weights: the measurement
+            noise and the model's Monte Carlo error), or ``None`` without std columns.
+        reduced_chi2_noise_only: the same weighted by the measurement std alone, or ``None``.
+        iterations: solver steps of the selected start.
+        time_s: wall time of the fit, seconds.
+        method, variant, seed: as given to :func:`fit`.
+        n_evaluations: forward evaluations at the objective's walks over every
+            refined start (a Jacobian counts as parameters + 1 forwards at its walks).
+        budget: the objective's :class:`Budget`.
+        n_params: fitted parameters (entries of ``x``).
+        connection: the estimator's connection (``"nee"`` or ``"mis"``, :func:`make_problem`).
+        fitted: the fitted parameters' names.
+        fixed_starts: the descriptions of the screen's fixed starts, by their index (empty for a given start).
+        starts_refined: refined starts; ``starts_at_optimum``: those whose loss
+            on the selected start's objective is within 1% of its own.
+        unfinished_energy: the largest energy fraction left in unfinished walks.
+        mc_error_median: the model's median Monte Carlo standard error, relative to the std where there is one.
+        check: the fitted material's :class:`CheckResult`.
+        final_step: the :class:`FinalStep`, or ``None`` (Powell, or ``final_step=False``).
+    """
+
+    REDUCED_CHI2_NOTE: ClassVar[str] = (
+        "reduced_chi2 weights residuals by sqrt(std^2 + mc^2), the measurement noise and the model's Monte Carlo "
+        "error; reduced_chi2_noise_only by std alone.")
+
+    loss: float
+    l2: float
+    rmse: float
+    n_points: int
+    reduced_chi2: float | None = None
+    reduced_chi2_noise_only: float | None = None
+    iterations: int
+    time_s: float
+    method: str
+    variant: str
+    n_evaluations: int
+    budget: Budget
+    seed: int
+    n_params: int
+    connection: str
+    fitted: tuple
+    fixed_starts: tuple
+    starts_refined: int
+    starts_at_optimum: int
+    unfinished_energy: float
+    mc_error_median: float
+    check: CheckResult
+    final_step: FinalStep | None
+
+    def to_json(self):
+        """The ``"fit"`` object of ``params.json``."""
+        out = dict(loss=self.loss, l2=self.l2, rmse=self.rmse, n_points=self.n_points)
+        if self.reduced_chi2 is not None:
+            out.update(reduced_chi2=self.reduced_chi2, reduced_chi2_noise_only=self.reduced_chi2_noise_only)
+        out.update(
+            iterations=self.iterations, time_s=self.time_s, method=self.method, variant=self.variant,
+            n_evaluations=self.n_evaluations, walks=self.budget.walks, bounces=self.budget.bounces,
+            jacobian_walks=self.budget.jacobian_walks, seed=self.seed, n_params=self.n_params,
+            connection=self.connection, fitted=list(self.fitted), fixed_starts=list(self.fixed_starts),
+            starts_refined=self.starts_refined, starts_at_optimum=self.starts_at_optimum,
+            unfinished_energy=self.unfinished_energy, mc_error_median=self.mc_error_median,
+            check=self.check.to_json(), final_step=None if self.final_step is None else self.final_step.to_json(),
+            reduced_chi2_note=self.REDUCED_CHI2_NOTE)
+        return out
+
+
+class StartSummary(NamedTuple):
+    """One refined start of a fit: its label, its final loss and its check's material chi-square with SE.
+
+    The label is the screened start's index (0: the default start), ``"given"``, or
+    ``"default, unscreened"`` (``"near-mirror, unscreened"`` where the highlight is
+    narrower than the angular sampling).
+    """
+
+    label: str
+    loss: float
+    material_chi2: float
+    material_chi2_se: float
+
+
+@dataclasses.dataclass
+class FitResult:
+    """The outcome of :func:`fit`.
+
+    Attributes:
+        material: the fitted material.
+        record: its :class:`FitRecord` (``record.to_json()``: the ``"fit"`` record of docs/formats.md).
+        model: ``(N, 3)`` the fitted model in the file's quantity.
+        model_std: ``(N, 3)`` its Monte Carlo standard error.
+        starts: a :class:`StartSummary` per refined start.
+        x: the fitted unbounded coordinates; ``param`` maps them.
+        problem: the selected start's objective (its last pass's weights and lobe probabilities).
+    """
+
+    material: Material
+    record: FitRecord
+    model: np.ndarray
+    model_std: np.ndarray
+    starts: list
+    x: jnp.ndarray
+    param: Parameterization
+    problem: Problem
+
+
+def _l2_rmse(resid):
+    """The paper's L2 (sum of squared differences) and the RMSE of the differences ``resid``."""
+    return dict(l2=float(np.sum(resid ** 2)), rmse=float(np.sqrt(np.mean(resid ** 2))))
+
+
+def fit_statistics(meas, model, loss, n_free):
+    """``loss``, ``l2``, ``rmse``, ``n_points`` and, with std columns, ``reduced_chi2`` and ``reduced_chi2_noise_only``.
+
+    ``model``: ``(N, 3)`` in the file's quantity; ``loss``: the objective there; ``n_free``: fitted
+    parameters. A dictionary with the keys of :class:`FitRecord`'s fields of these names.
+    """
+    resid = model - meas.values
+    n = resid.size
+    dof = max(n - n_free, 1)
+    stats = dict(loss=float(loss), **_l2_rmse(resid), n_points=int(meas.values.shape[0]))
+    if meas.std is not None:
+        stats["reduced_chi2"] = float(loss / dof)
+        stats["reduced_chi2_noise_only"] = float(np.sum((resid / meas.std) ** 2) / dof)
+    return stats
+
+
+# --- the check under independent keys -----------------------------------------------
+
+
 def check(problem, meas, x, *, key, walks, batches=CHECK_BATCHES):
-    """The material at ``x`` evaluated under independent keys, ``walks`` walks in all, against the data.
+    """The material at ``x`` evaluated under independent keys, ``walks`` walks in all: a :class:`CheckResult`.
 
     Under its fixed key a fit can follow the Monte Carlo error of that key: a
     near-mirror highlight, for instance, can be matched by a few lucky walks
@@ -723,21 +1008,9 @@ def check(problem, meas, x, *, key, walks, batches=CHECK_BATCHES):
     batches`` walks (keys ``fold_in(key, b)``); per point and channel, with
     ``r_b`` the residual of batch ``b``, the product ``r_b r_c`` of two
     different batches is an unbiased estimate of the squared residual of the
-    exact model, free of Monte Carlo variance. Returned (weights: the
-    measurement std, or none without std columns):
-
-    * ``chi2``: the sum of squared weighted residuals of the pooled estimate;
-    * ``material_chi2``: the mean over batch pairs of the weighted sums of
-      ``r_b r_c``, an unbiased estimate of the material's own chi-square (a fit
-      keeps the start for which it is lowest: ``chi2`` would also rank the
-      materials by how noisy they are to simulate);
-    * ``chi2_mc = chi2 - material_chi2``: the check's own Monte Carlo share;
-    * ``material_chi2_se``: its standard error (the jackknife over batches,
-      :func:`_pair_chi2`). It is large where rare walks dominate the estimate
-      (a near-mirror platelet lobe seen off its mirror direction);
-    * ``reduced_chi2`` and ``reduced_chi2_se``: the same per degree of
-      freedom (files with std columns);
-    * ``l2``, ``rmse`` of the pooled estimate, ``walks``, ``batches``, ``bounces``.
+    exact model, free of Monte Carlo variance. A fit keeps the start for
+    which ``material_chi2``, their mean, is lowest: ``chi2`` would also rank
+    the materials by how noisy they are to simulate.
     """
     return _check(problem, meas, x, key, walks, batches)[0]
 
@@ -756,12 +1029,38 @@ def _check(problem, meas, x, key, walks, batches=CHECK_BATCHES):
     material, se = _pair_chi2(r)
     resid = (model.mean(axis=0) - meas.values)[real]
     chi2 = float(np.sum((resid / sigma[real]) ** 2))
-    out = dict(walks=int(walks), batches=int(batches), bounces=int(problem.bounces), chi2=chi2,
-               chi2_mc=chi2 - material, material_chi2=material, material_chi2_se=se, **_l2_rmse(resid))
+    reduced = {}
     if meas.std is not None:
         dof = max(resid.size - problem.param.size, 1)
-        out.update(reduced_chi2=material / dof, reduced_chi2_se=se / dof)
+        reduced = dict(reduced_chi2=material / dof, reduced_chi2_se=se / dof)
+    out = CheckResult(walks=int(walks), batches=int(batches), bounces=int(problem.bounces), chi2=chi2,
+                      chi2_mc=chi2 - material, material_chi2=material, material_chi2_se=se, **_l2_rmse(resid),
+                      **reduced)
     return out, model.mean(axis=0)
+
+
+def _pair_chi2(r):
+    """The pair estimate of the exact model's chi-square from batch residuals ``r`` (``(K, ...)``), and its SE.
+
+    With ``r_b = delta + e_b`` (``delta`` the exact model's weighted residuals,
+    ``e_b`` batch ``b``'s Monte Carlo error, independent across batches), the
+    mean over ordered pairs ``b != c`` of ``r_b . r_c`` is unbiased for
+    ``delta . delta``. Its standard error is the delete-one-batch jackknife's.
+    That overstates the variance of the part quadratic in the errors
+    ``2 (K - 1) / (K - 2)``-fold, a part that falls fast with ``K`` (the same
+    walks in more batches; docs/method.md). An unbiased estimate of the
+    variance exists but can go negative under heavy-tailed errors (a
+    near-mirror lobe).
+    """
+    k = r.shape[0]
+    r = r.reshape(k, -1)
+    gram = r @ r.T
+    total = gram.sum() - np.trace(gram)
+    estimate = float(total) / (k * (k - 1))
+    # leaving out batch b removes its row and column of the off-diagonal sum
+    leave_one_out = (total - 2 * (gram.sum(axis=1) - np.diag(gram))) / ((k - 1) * (k - 2))
+    se = np.sqrt((k - 1) / k * np.sum((leave_one_out - leave_one_out.mean()) ** 2))
+    return estimate, float(se)
 
 
 def gauss_newton_step(problem, jac, pooled, x, *, damping=FINAL_DAMPING):
@@ -775,8 +1074,7 @@ def gauss_newton_step(problem, jac, pooled, x, *, damping=FINAL_DAMPING):
     -J^T r`` with ``r`` the residuals of ``pooled`` under ``problem``'s weights
     (Marquardt's scaling). At a minimum of ``problem``'s objective
     ``J^T r`` is what its key's Monte Carlo error pulled the fit away by; the
-    damping keeps the step off the directions the data hardly pin down (the
-    undamped step took matte2 to a reduced chi-square of 6).
+    damping keeps the step off the directions the data hardly pin down.
     """
     sigma = np.asarray(problem.sigma, float)
     real = np.isfinite(sigma)  # padded dummy points (jaxcos.ablate): infinite std, no residual
@@ -792,6 +1090,9 @@ def gauss_newton_step(problem, jac, pooled, x, *, damping=FINAL_DAMPING):
 def _batch_keys(key, n):
     """``n`` independent keys ``fold_in(key, b)``, stacked: the batches of :func:`check` and of the screen."""
     return jax.vmap(lambda b: jax.random.fold_in(key, b))(jnp.arange(n))
+
+
+# --- the stages of a fit --------------------------------------------------------------
 
 
 class _Abandoned(Exception):
@@ -816,50 +1117,226 @@ def _in_background(fn, *args):
     return future
 
 
-def _upper_bound(material_chi2, se):
-    """The number a fit ranks materials by: the pair estimate plus twice its SE (see :data:`CHECK_FACTOR`)."""
-    return material_chi2 + 2 * se
+def _silent(message):
+    """The default ``progress``: says nothing."""
 
 
-def _pair_chi2(r):
-    """The pair estimate of the exact model's chi-square from batch residuals ``r`` (``(K, ...)``), and its SE.
+@dataclasses.dataclass(frozen=True)
+class RefinedStart:
+    """A start after :data:`PASSES` solver passes (:class:`Refiner`).
 
-    With ``r_b = delta + e_b`` (``delta`` the exact model's weighted residuals,
-    ``e_b`` batch ``b``'s Monte Carlo error, independent across batches), the
-    mean over ordered pairs ``b != c`` of ``r_b . r_c`` is unbiased for
-    ``delta . delta``. Its standard error is the delete-one-batch jackknife's.
-    That overstates the variance of the part quadratic in the errors
-    ``2 (K - 1) / (K - 2)``-fold, a part that falls fast with ``K`` (the same
-    walks in more batches): simulated, the jackknife's standard error was
-    1.7 times the true one at 4 batches, 1.08 times at 16. An unbiased
-    estimate of the variance exists but went negative under heavy-tailed
-    errors (a near-mirror lobe).
+    Attributes:
+        label: see :class:`StartSummary`.
+        x: where it ended (unbounded coordinates).
+        loss: the objective of its last pass there.
+        steps: solver steps (LM) or evaluations (Powell), over all passes.
+        evaluations: forward evaluations at the objective's walks, a Jacobian counted at its cost.
+        problem: the objective of its last pass (its weights and lobe probabilities).
+        jacobian: that objective's residuals' Jacobian ``(M, P)`` at ``x`` (LM), or ``None`` (Powell).
     """
-    k = r.shape[0]
-    r = r.reshape(k, -1)
-    gram = r @ r.T
-    total = gram.sum() - np.trace(gram)
-    estimate = float(total) / (k * (k - 1))
-    # leaving out batch b removes its row and column of the off-diagonal sum
-    leave_one_out = (total - 2 * (gram.sum(axis=1) - np.diag(gram))) / ((k - 1) * (k - 2))
-    se = np.sqrt((k - 1) / k * np.sum((leave_one_out - leave_one_out.mean()) ** 2))
-    return estimate, float(se)
+
+    label: str
+    x: jnp.ndarray
+    loss: float
+    steps: int
+    evaluations: float
+    problem: Problem
+    jacobian: jnp.ndarray | None
 
 
-def _l2_rmse(resid):
-    """The paper's L2 (sum of squared differences) and the RMSE of the differences ``resid``."""
-    return dict(l2=float(np.sum(resid ** 2)), rmse=float(np.sqrt(np.mean(resid ** 2))))
+class Refiner:
+    """The refine stage: :data:`PASSES` passes of ``method`` from a start, each on :func:`with_mc_error` at its start.
+
+    ``stop``, once set, abandons a refinement at its next pass (:class:`_Abandoned`): a
+    fit that has stopped leaves its background start after the pass it is in.
+    """
+
+    def __init__(self, problem, meas, method, budget):
+        self.problem, self.meas, self.method = problem, meas, method
+        # LM: a value per step, a Jacobian (parameters + 1 forwards at jacobian_walks) per accepted step
+        self.per_jacobian = (problem.param.size + 1) * budget.jacobian_walks / budget.walks
+        self.stop = threading.Event()
+
+    def __call__(self, label, x):
+        steps, evaluations, jac = 0, 0.0, None
+        for _ in range(PASSES):
+            if self.stop.is_set():
+                raise _Abandoned
+            prob = with_mc_error(self.problem, self.meas, x)
+            if self.method == "lm":
+                x, loss, n, accepted, jac = solve_lm(prob, x, jacobian=True)
+                evaluations += n + accepted * self.per_jacobian
+            else:
+                x, loss, n = solve_powell(prob, x)
+                evaluations += n
+            steps += n
+        return RefinedStart(label=label, x=x, loss=loss, steps=steps, evaluations=evaluations, problem=prob,
+                            jacobian=jac)
 
 
-def fit_statistics(meas, model, loss, n_free):
-    resid = model - meas.values
-    n = resid.size
-    dof = max(n - n_free, 1)
-    stats = dict(loss=float(loss), **_l2_rmse(resid), n_points=int(meas.values.shape[0]))
-    if meas.std is not None:
-        stats["reduced_chi2"] = float(loss / dof)
-        stats["reduced_chi2_noise_only"] = float(np.sum((resid / meas.std) ** 2) / dof)
-    return stats
+@dataclasses.dataclass(frozen=True)
+class StartPlan:
+    """The multi-start: the screen's fixed starts, its pool, and the start refined unscreened beside it.
+
+    Attributes:
+        fixed: the :class:`FixedStart` of each fixed start, first in the pool.
+        pool: ``(S, P)`` every start the screen runs, fixed ones then random ones.
+        unscreened: the key of the fixed start refined unscreened: ``"near-mirror"`` where
+            there is one (the screen's small budget can lead it astray), else ``"default"``.
+        x_unscreened: its unbounded coordinates.
+    """
+
+    fixed: tuple
+    pool: jnp.ndarray
+    unscreened: str
+    x_unscreened: jnp.ndarray
+
+
+def plan_starts(meas, param, connection, *, starts, t, rng):
+    """The :class:`StartPlan` of ``starts`` screened starts besides the default one (:func:`fit`)."""
+    tilt = highlight_tilt(meas) if "theta_p" in param.names else None
+    fixed = tuple(fixed_starts(starts, t, tilt, connection))
+    xs = [param.from_material(Material(layers=(Layer(**f.values),))) for f in fixed]
+    # The screen's budget is blind to a near-mirror lobe: refined unscreened, its start does not depend
+    # on the screen (docs/method.md, "Near-mirror highlights").
+    i = len(fixed) - 1 if fixed[-1].key == "near-mirror" else 0
+    pool = jnp.concatenate([jnp.stack(xs), random_starts(param, starts + 1 - len(fixed), rng, tilt)])
+    return StartPlan(fixed=fixed, pool=pool, unscreened=fixed[i].key, x_unscreened=xs[i])
+
+
+@dataclasses.dataclass(frozen=True)
+class Screened:
+    """The screen's outcome: every start's end, its rank (lower is better) and the best ``refine`` of them."""
+
+    ends: jnp.ndarray
+    ranks: list
+    order: list
+
+
+def screen(problem, pool, key, *, refine):
+    """The screen stage: :data:`SCREEN_STEPS` Levenberg-Marquardt steps from each start of ``pool``, ranked.
+
+    ``problem``: the screen's objective (its small budget). The ends are ranked by
+    the pair estimate of their chi-square over :data:`CHECK_BATCHES` independent
+    batches (keys from ``key``) plus twice its SE (:func:`_pair_chi2`): the screen's
+    own loss at so few walks would also rank the materials by how noisy they are to
+    simulate. An end with a non-finite residual ranks last.
+    """
+    ends, resid = _screen(problem, pool, _batch_keys(key, CHECK_BATCHES))
+    ranks = [_upper_bound(*_pair_chi2(r)) if np.all(np.isfinite(r)) else np.inf for r in np.asarray(resid, float)]
+    return Screened(ends=ends, ranks=ranks, order=[int(i) for i in np.argsort(ranks)[:refine]])
+
+
+def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, say):
+    """The screen and the refinement of its best ``refine`` ends, the plan's unscreened start refined meanwhile.
+
+    The unscreened start is refined in a second thread while the screen runs:
+    its tracing and compiling, which leave a core idle, overlap the screen's.
+    Returns the :class:`RefinedStart` of each, the screened ones first.
+    """
+    screen_problem = dataclasses.replace(problem, walks=budget.screen_walks, bounces=budget.screen_bounces,
+                                         jacobian_walks=None)
+    say(f"refining the {plan.unscreened} start unscreened ({method}, {PASSES} passes) while screening "
+        f"{plan.pool.shape[0]} starts with a short Levenberg-Marquardt at {screen_problem.walks} walks and "
+        f"{screen_problem.bounces} bounces")
+    unscreened = _in_background(refiner, f"{plan.unscreened}, unscreened", plan.x_unscreened)
+    try:
+        screened = screen(screen_problem, plan.pool, jax.random.fold_in(key, 2), refine=refine)
+        say(f"refining the best {len(screened.order)} screened start{'s' * (len(screened.order) > 1)} "
+            f"({method}, {PASSES} passes)")
+        return [refiner(str(i), screened.ends[i]) for i in screened.order] + [unscreened.result()]
+    finally:
+        refiner.stop.set()  # an interrupted fit leaves its background start after the pass it is in
+
+
+@dataclasses.dataclass(frozen=True)
+class Selection:
+    """The select stage's outcome.
+
+    Attributes:
+        best: the index of the selected start among the refined ones.
+        checks: the :class:`CheckResult` of each refined start.
+        pooled: each check's pooled model ``(N, 3)``, file's quantity.
+        at_optimum: refined starts whose loss on the selected start's objective is within 1% of its own.
+    """
+
+    best: int
+    checks: tuple
+    pooled: tuple
+    at_optimum: int
+
+
+def select(refined, meas, key, walks):
+    """The select stage: check each refined start under independent keys; the lowest :attr:`CheckResult.bound` wins.
+
+    Each start's loss has its own weights and lobe probabilities; on the
+    selected start's objective the starts are compared on one footing for
+    ``at_optimum`` (a check cannot tell near-mirror materials apart).
+    """
+    checks, pooled = zip(*[_check(r.problem, meas, r.x, key, walks) for r in refined])
+    best = int(np.argmin([c.bound for c in checks]))
+    problem = refined[best].problem
+    common = [float(problem.loss(r.x)) for r in refined]
+    at_optimum = len([c for c in common if c - common[best] <= 0.01 * common[best]])
+    return Selection(best=best, checks=checks, pooled=pooled, at_optimum=at_optimum)
+
+
+@dataclasses.dataclass(frozen=True)
+class Polished:
+    """The polish stage's outcome: the fitted ``x``, its :class:`CheckResult`, and the :class:`FinalStep` taken."""
+
+    x: jnp.ndarray
+    check: CheckResult
+    step: FinalStep | None
+
+
+def polish(start, check_before, pooled, meas, key, walks):
+    """The polish stage: one damped Gauss-Newton step from ``start`` on its check's ``pooled`` residuals.
+
+    The step (:func:`gauss_newton_step`, :data:`FINAL_DAMPING`) uses the
+    Jacobian ``start``'s last pass ended with; a check under fresh keys
+    (``key``) keeps it where its bound is lower than ``check_before``'s.
+    """
+    x_step = gauss_newton_step(start.problem, start.jacobian, pooled, start.x)
+    if np.all(np.isfinite(np.asarray(x_step))):
+        check_after = check(start.problem, meas, x_step, key=key, walks=walks)
+        kept = bool(check_after.bound < check_before.bound)
+    else:
+        check_after, kept = None, False
+    step = FinalStep(damping=FINAL_DAMPING, kept=kept, check_before=check_before, check_after=check_after)
+    return Polished(x=x_step, check=check_after, step=step) if kept else Polished(start.x, check_before, step)
+
+
+def summarise(meas, refined, selection, polished, *, method, variant, seed, budget, fixed, started):
+    """The summarise stage: the :class:`FitResult` of the selected start after its polish.
+
+    ``polished``: a :class:`Polished`, its ``step`` ``None`` where there was none;
+    ``fixed``: the plan's :class:`FixedStart` (none for a given start); ``started``:
+    the fit's ``time.perf_counter()`` at its start.
+    """
+    start = refined[selection.best]
+    problem, param, x, loss = start.problem, start.problem.param, polished.x, start.loss
+    est = problem.estimate(x)
+    if polished.step is not None and polished.step.kept:  # the objective at the stepped material, from its estimate
+        r = problem.weigh(problem.scale * est.f)
+        loss = float(jnp.sum(r * r))
+    model = np.asarray(problem.scale * est.f)
+    model_std = np.asarray(problem.scale * est.stderr)
+    elapsed = time.perf_counter() - started
+    record = FitRecord(
+        **fit_statistics(meas, model, loss, param.size),
+        iterations=int(start.steps), time_s=round(elapsed, 2), method=method, variant=variant,
+        n_evaluations=int(round(sum(r.evaluations for r in refined))), budget=budget, seed=int(seed),
+        n_params=int(param.size), connection=problem.connection, fitted=tuple(param.names),
+        fixed_starts=tuple(f.description for f in fixed), starts_refined=len(refined),
+        starts_at_optimum=selection.at_optimum, unfinished_energy=float(np.max(np.asarray(est.unfinished))),
+        mc_error_median=float(np.median(model_std / (meas.std if meas.std is not None else 1.0))),
+        check=polished.check, final_step=polished.step,
+    )
+    starts = [StartSummary(r.label, float(r.loss), c.material_chi2, c.material_chi2_se)
+              for r, c in zip(refined, selection.checks)]
+    return FitResult(material=param.to_material(x), record=record, model=model, model_std=model_std,
+                     starts=starts, x=x, param=param, problem=problem)
 
 
 def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounces=FIT_BOUNCES,
@@ -875,163 +1352,70 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         walks, bounces: the Monte Carlo budget of the objective.
         jacobian_walks: the walks of its Jacobian, the first of the same walks
             (at most ``walks``); the screen runs at half of them and a quarter
-            of the bounces.
-        starts: number of starts screened besides the default start: a fixed
-            one where broad, tilted platelets dominate (``_PLATELET_START``),
-            where the highlight is narrower than the angular sampling
-            (:func:`narrow_highlight`) a fixed one of sparse near-mirror
-            platelets at its tilt (``_MIRROR_START``), the others random; a
-            third of the random ones start at the tilt of
-            the measured highlight with a narrow ``alpha_p``
-            (:func:`highlight_tilt`). The screen ranks its ends by the pair
-            estimate of their chi-square (:func:`_pair_chi2`) over
-            :data:`CHECK_BATCHES` independent batches, plus twice its SE.
+            of the bounces (:class:`Budget`).
+        starts: number of starts screened besides the default start
+            (:func:`plan_starts`): a fixed one where broad, tilted platelets
+            dominate (``_PLATELET_START``), where the highlight is narrower
+            than the angular sampling (:func:`narrow_highlight`) a fixed one
+            of sparse near-mirror platelets at its tilt (``_MIRROR_START``),
+            the others random; a third of the random ones start at the tilt
+            of the measured highlight with a narrow ``alpha_p``
+            (:func:`highlight_tilt`). The screen ranks its ends
+            (:func:`screen`).
         refine: number of best screened starts refined at the full budget
             (:data:`PASSES` passes each), besides the default start as it is
-            (the near-mirror start where the highlight is narrow; the
-            screen's small budget can lead it astray), which is refined in
-            a second thread while the screen runs; each is then
-            checked with :data:`CHECK_FACTOR` times the walks under
-            independent keys (:func:`check`), and the best check is the fit
-            (the rule is at :data:`CHECK_FACTOR`), after a last step on its
-            check's residuals where that step checks better (LM only;
-            :func:`gauss_newton_step`, :data:`FINAL_DAMPING`).
+            (the near-mirror start where the highlight is narrow), which is
+            refined in a second thread while the screen runs
+            (:func:`screen_and_refine`); each is then checked with
+            :data:`CHECK_FACTOR` times the walks under independent keys, and
+            the best check is the fit (:func:`select`), after a last step on
+            its check's residuals where that step checks better (LM only;
+            :func:`polish`).
         fit_t, fit_phi: also fit the optical thickness ``t`` (else fixed at ``t``)
             or the tilt azimuth ``phi_p`` (else 0).
         start: a :class:`Material` to start from instead of the multi-start
             (only that start is refined).
         t: the optical thickness when it is not fitted (the paper's protocol: 16).
         final_step: take the last step on the best check's residuals (LM;
-            :func:`gauss_newton_step`). ``False`` keeps the minimum of the
-            fixed-key objective itself.
-        progress: a callable ``progress(message)`` told about each stage.
+            :func:`polish`). ``False`` keeps the minimum of the fixed-key
+            objective itself.
+        progress: a callable ``progress(message)`` told about each stage (default: none).
 
     Returns:
         A :class:`FitResult`.
     """
     check_variant(variant)
-    if method not in ("lm", "powell"):
+    if method not in METHODS:
         raise InputError(f"unknown method {method!r}; choose 'lm' or 'powell'.")
-    say = progress or (lambda msg: None)
-    t0 = time.perf_counter()
+    say = progress or _silent
+    started = time.perf_counter()
     template = start if start is not None else Material(layers=(Layer(**{**_DEFAULT, "t": t}),))
     param = parameterization(variant, fit_t=fit_t, fit_phi=fit_phi, template=template)
     key = jax.random.key(seed)
     x_default = param.from_material(template)
-    if int(jacobian_walks) != jacobian_walks or jacobian_walks < 1:
-        raise InputError(f"jacobian_walks must be a positive integer, not {jacobian_walks}.")
-    jacobian_walks = min(int(jacobian_walks), int(walks))
-    problem = make_problem(meas, param, key=key, walks=walks, bounces=bounces, reference=param.to_material(x_default),
-                           jacobian_walks=jacobian_walks)
+    budget = Budget.of(walks, bounces, jacobian_walks)
+    problem = make_problem(meas, param, key=key, walks=budget.walks, bounces=budget.bounces,
+                           reference=param.to_material(x_default), jacobian_walks=budget.jacobian_walks)
+    refiner = Refiner(problem, meas, method, budget)
 
-    # LM: a value per step, a Jacobian (parameters + 1 forwards at jacobian_walks) per accepted step
-    per_jacobian = (param.size + 1) * jacobian_walks / walks
-    stop = threading.Event()
-
-    def refine_start(label, x):
-        """``PASSES`` passes from ``x``: the result ``(label, x, loss, steps, problem, jacobian)`` and its evaluations.
-
-        ``jacobian``: the residuals' at ``x`` (LM), or ``None`` (Powell).
-        """
-        steps, evaluations, jac = 0, 0.0, None
-        for _ in range(PASSES):
-            if stop.is_set():
-                raise _Abandoned
-            prob = with_mc_error(problem, meas, x)
-            if method == "lm":
-                x, loss, n, accepted, jac = solve_lm(prob, x, jacobian=True)
-                evaluations += n + accepted * per_jacobian
-            else:
-                x, loss, n = solve_powell(prob, x)
-                evaluations += n
-            steps += n
-        return (label, x, loss, steps, prob, jac), evaluations
-
-    fixed = []  # the screen's fixed starts, by their index in it: (key, description, x)
     if start is not None:
         say(f"refining the given start ({method}, {PASSES} passes)")
-        outcomes = [refine_start("given", x_default)]
+        fixed, refined = (), [refiner("given", x_default)]
     else:
-        rng = np.random.default_rng(seed)
-        tilt = highlight_tilt(meas) if "theta_p" in param.names else None
-        fixed = [(k, name, param.from_material(Material(layers=(Layer(**values),))))
-                 for k, name, values in fixed_starts(starts, t, tilt, problem.connection)]
-        # The fixed start refined unscreened besides the best screened one: the default, or where the
-        # highlight is narrower than the sampling, near-mirror platelets at its tilt. The screen's budget is
-        # blind to such a lobe (a quarter of the bounces leave up to 14% of dewy2's energy unfinished):
-        # screened, dewy2's near-mirror start ended at 2.0 and 3.2 in two runs that differed only by
-        # float rounding; unscreened, at 2.1 and 2.2 under seeds 0 and 1.
-        k, _, x = fixed[-1] if fixed[-1][0] == "near-mirror" else fixed[0]
-        pool = jnp.concatenate([jnp.stack([x for _, _, x in fixed]),
-                                random_starts(param, starts + 1 - len(fixed), rng, tilt)])
-        screen = dataclasses.replace(problem, walks=max(jacobian_walks // 2, 8), bounces=max(bounces // 4, 16),
-                                     jacobian_walks=None)
-        say(f"refining the {k} start unscreened ({method}, {PASSES} passes) while screening {pool.shape[0]} "
-            f"starts with a short Levenberg-Marquardt at {screen.walks} walks and {screen.bounces} bounces")
-        # The unscreened start does not wait for the screen: its tracing and compiling, which leave a core
-        # idle, overlap the screen's (dewy1 cold, 10 alternating pairs of runs: 6.1 +- 2.1 s less of about
-        # 66 s; benchmarks/RESULTS.md).
-        unscreened = _in_background(refine_start, f"{k}, unscreened", x)
-        try:
-            xs, resid = _screen(screen, pool, _batch_keys(jax.random.fold_in(key, 2), CHECK_BATCHES))
-            # rank the ends by the pair estimate of their chi-square: the screen's own loss at so few walks
-            # also ranks the materials by how noisy they are to simulate (padded points have residual 0)
-            ranks = [_upper_bound(*_pair_chi2(r)) if np.all(np.isfinite(r)) else np.inf
-                     for r in np.asarray(resid, float)]
-            order = np.argsort(ranks)[:refine]
-            say(f"refining the best {len(order)} screened start{'s' * (len(order) > 1)} "
-                f"({method}, {PASSES} passes)")
-            outcomes = [refine_start(str(i), xs[i]) for i in order] + [unscreened.result()]
-        finally:
-            stop.set()  # an interrupted fit leaves its background start after the pass it is in
-    results = [r for r, _ in outcomes]
-    n_eval = sum(e for _, e in outcomes)
-    check_walks = CHECK_BATCHES * -(-CHECK_FACTOR * walks // CHECK_BATCHES)
-    say(f"checking {len(results)} refined start{'s' * (len(results) > 1)} at {check_walks} walks "
+        plan = plan_starts(meas, param, problem.connection, starts=starts, t=t, rng=np.random.default_rng(seed))
+        fixed = plan.fixed
+        refined = screen_and_refine(plan, problem, refiner, key, budget=budget, refine=refine, method=method, say=say)
+
+    say(f"checking {len(refined)} refined start{'s' * (len(refined) > 1)} at {budget.check_walks} walks "
         f"in {CHECK_BATCHES} batches under independent keys")
-    check_key = jax.random.fold_in(key, 1)
-    checks, pooled = zip(*[_check(r[4], meas, r[1], check_key, check_walks) for r in results])
-    best = int(np.argmin([_upper_bound(c["material_chi2"], c["material_chi2_se"]) for c in checks]))
-    index, x, loss, steps, problem, jac = results[best]
-    # Each start's loss has its own weights and lobe probabilities; on the best start's objective the
-    # starts are compared on one footing (a check cannot tell near-mirror materials apart).
-    common = [float(problem.loss(r[1])) for r in results]
-    same = [c for c in common if c - common[best] <= 0.01 * common[best]]
-    final = checks[best]
-    step_record = None
-    if final_step and jac is not None:
-        say(f"taking one Gauss-Newton step on the best check's pooled residuals and checking it at {check_walks} "
-            "walks under fresh keys")
-        x_step = gauss_newton_step(problem, jac, pooled[best], x)
-        if np.all(np.isfinite(np.asarray(x_step))):
-            c_step = check(problem, meas, x_step, key=jax.random.fold_in(key, 3), walks=check_walks)
-            kept = bool(_upper_bound(c_step["material_chi2"], c_step["material_chi2_se"])
-                        < _upper_bound(final["material_chi2"], final["material_chi2_se"]))
-        else:
-            c_step, kept = None, False
-        step_record = dict(damping=FINAL_DAMPING, kept=kept, check_before=final, check_after=c_step)
-        if kept:
-            x, final = x_step, c_step
-    est = problem.estimate(x)
-    if step_record is not None and step_record["kept"]:  # the objective at the stepped material, from its estimate
-        r = problem.weigh(problem.scale * est.f)
-        loss = float(jnp.sum(r * r))
-    model = np.asarray(problem.scale * est.f)
-    model_std = np.asarray(problem.scale * est.stderr)
-    elapsed = time.perf_counter() - t0
-    record = fit_statistics(meas, model, loss, param.size)
-    record.update(
-        iterations=int(steps), time_s=round(elapsed, 2), method=method, variant=variant,
-        n_evaluations=int(round(n_eval)), walks=int(walks), bounces=int(bounces), jacobian_walks=jacobian_walks,
-        seed=int(seed), n_params=int(param.size), connection=problem.connection,
-        fitted=list(param.names), fixed_starts=[name for _, name, _ in fixed], starts_refined=len(results),
-        starts_at_optimum=len(same),
-        unfinished_energy=float(np.max(np.asarray(est.unfinished))),
-        mc_error_median=float(np.median(model_std / (meas.std if meas.std is not None else 1.0))),
-        check=final, final_step=step_record,
-    )
-    starts_summary = [(r[0], float(r[2]), c["material_chi2"], c["material_chi2_se"]) for r, c in zip(results, checks)]
-    record["reduced_chi2_note"] = ("reduced_chi2 weights residuals by sqrt(std^2 + mc^2), the measurement noise and "
-                                   "the model's Monte Carlo error; reduced_chi2_noise_only by std alone.")
-    return FitResult(material=param.to_material(x), record=record, model=model, model_std=model_std,
-                     starts=starts_summary, x=x, param=param, problem=problem)
+    selection = select(refined, meas, jax.random.fold_in(key, 1), budget.check_walks)
+    best = refined[selection.best]
+    if final_step and best.jacobian is not None:
+        say(f"taking one Gauss-Newton step on the best check's pooled residuals and checking it at "
+            f"{budget.check_walks} walks under fresh keys")
+        polished = polish(best, selection.checks[selection.best], selection.pooled[selection.best], meas,
+                          jax.random.fold_in(key, 3), budget.check_walks)
+    else:
+        polished = Polished(x=best.x, check=selection.checks[selection.best], step=None)
+    return summarise(meas, refined, selection, polished, method=method, variant=variant, seed=seed, budget=budget,
+                     fixed=fixed, started=started)

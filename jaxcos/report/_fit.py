@@ -41,8 +41,8 @@ def _fmt(v):
 
 
 def _starts_legend(record):
-    """What the starts table's labels mean: the screen's fixed starts by index (``record["fixed_starts"]``)."""
-    fixed = record["fixed_starts"]
+    """What the starts table's labels mean: the screen's fixed starts by index (``record.fixed_starts``)."""
+    fixed = record.fixed_starts
     if not fixed:
         return "the given start"
     return ", ".join(f"{i} = {name}" for i, name in enumerate(fixed)) + "; screened unless said"
@@ -51,21 +51,21 @@ def _starts_legend(record):
 def _budget_name(record):
     from ..model import BUDGETS
 
-    names = [n for n, budget in BUDGETS.items() if budget == (record["walks"], record["bounces"])]
+    names = [n for n, budget in BUDGETS.items() if budget == (record.budget.walks, record.budget.bounces)]
     return f" (budget `{names[0]}`)" if names else ""
 
 
 def _check_section(r):
-    """The report's account of :func:`jaxcos._fit.check`: the fit under a key it was not tuned to."""
-    c = r["check"]
-    weighted = "reduced_chi2" in c
+    """The report's account of the fit's check (``record.check``): the fit under a key it was not tuned to."""
+    c = r.check
+    weighted = c.reduced_chi2 is not None
     what = "weighted by the measurement std" if weighted else "unweighted: the file has no std"
     lines = [
         "",
         "## Check under independent keys",
         "",
         f"Under its fixed key a fit can follow that key's Monte Carlo error. Each refined start was therefore "
-        f"evaluated again in {c['batches']} batches of {c['walks'] // c['batches']} walks under independent keys. "
+        f"evaluated again in {c.batches} batches of {c.walks // c.batches} walks under independent keys. "
         f"Per point, the product of two batches' residuals estimates the squared residual of the exact model, "
         f"free of Monte Carlo variance; summed over points and channels ({what}) and averaged over batch pairs, it "
         "is the column \"material chi-square\" above (the raw chi-square would also rank materials by how noisy "
@@ -73,23 +73,23 @@ def _check_section(r):
         "for which the material chi-square plus twice its standard error is lowest.",
     ] + _final_step_lines(r)
     if weighted:
-        dof = r["n_points"] * 3 - r["n_params"]
+        dof = r.n_points * 3 - r.n_params
         lines += [
             "",
-            f"The pooled estimate scores a chi-square of {c['chi2']:.6g}, of which {c['chi2_mc']:.6g} is the check's "
+            f"The pooled estimate scores a chi-square of {c.chi2:.6g}, of which {c.chi2_mc:.6g} is the check's "
             f"own Monte Carlo error. The material's own chi-square, reduced over {dof} degrees of freedom: "
-            f"**{c['reduced_chi2']:.3f} +- {c['reduced_chi2_se']:.3f}** (about 1 for a material that explains the "
+            f"**{c.reduced_chi2:.3f} +- {c.reduced_chi2_se:.3f}** (about 1 for a material that explains the "
             f"data to their noise). Under the fit's key, by measurement noise alone, it was "
-            f"{r['reduced_chi2_noise_only']:.3f}.",
+            f"{r.reduced_chi2_noise_only:.3f}.",
         ]
-        if c["reduced_chi2_se"] > 0.5 * max(abs(c["reduced_chi2"]), 1.0):
+        if c.reduced_chi2_se > 0.5 * max(abs(c.reduced_chi2), 1.0):
             lines += ["", "**The check cannot pin down this material's chi-square**: a few rare walks dominate its "
                       "Monte Carlo estimate (typical of a near-mirror platelet lobe, narrow `alpha_p`). Compare "
                       "results by L2, or evaluate them with many more walks (`jaxcos eval --walks`)."]
-        elif c["reduced_chi2"] > 2.0 * max(r["reduced_chi2_noise_only"], 1.0):
+        elif c.reduced_chi2 > 2.0 * max(r.reduced_chi2_noise_only, 1.0):
             lines += ["", "**The fit does not hold under another key**: it has followed its own key's Monte Carlo "
                       "error. Refit with more walks (`--walks`)."]
-        elif c["reduced_chi2"] > 3.0:
+        elif c.reduced_chi2 > 3.0:
             lines += ["", "**The fitted material does not explain the data to their noise.** The search may have "
                       "missed the optimum (try more `--starts`, another `--seed`, or `--start` from a guess), or "
                       "the variant lacks an effect the data show (`jaxcos ablate`)."]
@@ -97,24 +97,26 @@ def _check_section(r):
 
 
 def _final_step_lines(r):
-    """The report's account of the fit's last step (:func:`jaxcos._fit.gauss_newton_step`; LM fits)."""
-    step = r.get("final_step")
-    if not step:
+    """The report's account of the fit's last step (the polish stage of :func:`jaxcos.fit`; LM fits)."""
+    step = r.final_step
+    if step is None:
         return []
-    before = step["check_before"]
+    before = step.check_before
     lines = ["", "Then one damped Gauss-Newton step from that start, on the residuals of its check's pooled estimate "
-             f"({before['walks']} walks, {before['walks'] // r['walks']} times the fit's, so that much less Monte "
+             f"({before.walks} walks, {before.walks // r.budget.walks} times the fit's, so that much less Monte "
              "Carlo variance) with "
              "the Jacobian the fit ended with: under its one key the fit also follows that key's Monte Carlo error, "
              "and the step undoes part of it."]
-    after = step["check_after"]
+    after = step.check_after
     if after is None:
         return lines + ["The step was not finite and was not taken."]
-    unit, se, what = (("reduced_chi2", "reduced_chi2_se", "reduced chi-square") if "reduced_chi2" in before
-                      else ("material_chi2", "material_chi2_se", "chi-square"))
-    verdict = "It was kept; the fit is the stepped material." if step["kept"] else "It was not kept."
-    return lines + [f"Checked under fresh keys, the stepped material's {what} is {after[unit]:.3f} +- {after[se]:.3f}, "
-                    f"against {before[unit]:.3f} +- {before[se]:.3f} before the step. {verdict}"]
+    reduced = before.reduced_chi2 is not None  # per degree of freedom where the file has std columns
+    what = "reduced chi-square" if reduced else "chi-square"
+    (a, a_se), (b, b_se) = [(c.reduced_chi2, c.reduced_chi2_se) if reduced else (c.material_chi2, c.material_chi2_se)
+                            for c in (after, before)]
+    verdict = "It was kept; the fit is the stepped material." if step.kept else "It was not kept."
+    return lines + [f"Checked under fresh keys, the stepped material's {what} is {a:.3f} +- {a_se:.3f}, "
+                    f"against {b:.3f} +- {b_se:.3f} before the step. {verdict}"]
 
 
 BRIGHT_FRACTION = 0.1
@@ -155,30 +157,30 @@ def fit_report(result, meas):
     lines = [
         f"# Fit of {os.path.basename(meas.path) or 'measurements'}",
         "",
-        f"Variant `{r['variant']}`, method `{r['method']}`, {r['n_points']} points x 3 channels, "
-        f"{r['n_params']} fitted parameters ({', '.join(r['fitted'])}), seed {r['seed']}.",
+        f"Variant `{r.variant}`, method `{r.method}`, {r.n_points} points x 3 channels, "
+        f"{r.n_params} fitted parameters ({', '.join(r.fitted)}), seed {r.seed}.",
         "",
         "## Quality",
         "",
         "| quantity | value |",
         "|---|---|",
-        f"| loss (the objective, under the fit's key, at the fitted material) | {r['loss']:.6g} |",
-        f"| L2 (paper's metric: sum of squared differences, file's quantity) | {r['l2']:.6g} |",
-        f"| RMSE | {r['rmse']:.4g} |",
+        f"| loss (the objective, under the fit's key, at the fitted material) | {r.loss:.6g} |",
+        f"| L2 (paper's metric: sum of squared differences, file's quantity) | {r.l2:.6g} |",
+        f"| RMSE | {r.rmse:.4g} |",
     ]
-    if "reduced_chi2" in r:
-        lines += [f"| reduced chi-square (noise and Monte Carlo error) | {r['reduced_chi2']:.3f} |",
-                  f"| reduced chi-square (measurement noise only) | {r['reduced_chi2_noise_only']:.3f} |"]
-    c = r["check"]
-    lines.append(f"| L2 under independent keys, {c['walks']} walks (see Check) | {c['l2']:.6g} |")
-    if "reduced_chi2" in c:
-        lines.append(f"| reduced chi-square of the material (independent keys, see Check) | {c['reduced_chi2']:.3f} "
-                     f"+- {c['reduced_chi2_se']:.3f} |")
+    if r.reduced_chi2 is not None:
+        lines += [f"| reduced chi-square (noise and Monte Carlo error) | {r.reduced_chi2:.3f} |",
+                  f"| reduced chi-square (measurement noise only) | {r.reduced_chi2_noise_only:.3f} |"]
+    c = r.check
+    lines.append(f"| L2 under independent keys, {c.walks} walks (see Check) | {c.l2:.6g} |")
+    if c.reduced_chi2 is not None:
+        lines.append(f"| reduced chi-square of the material (independent keys, see Check) | {c.reduced_chi2:.3f} "
+                     f"+- {c.reduced_chi2_se:.3f} |")
     lines += [
-        f"| iterations (best start) | {r['iterations']} |",
+        f"| iterations (best start) | {r.iterations} |",
         f"| forward evaluations at the objective's walks (a Jacobian counts as parameters + 1 forwards at its "
-        f"walks) | {r['n_evaluations']} |",
-        f"| time | {r['time_s']:.1f} s |",
+        f"walks) | {r.n_evaluations} |",
+        f"| time | {r.time_s:.1f} s |",
         "",
         "## Parameters",
         "",
@@ -186,15 +188,15 @@ def fit_report(result, meas):
         "|---|---|",
     ]
     for key, value in layer.items():
-        mark = "" if key.replace("_deg", "") in r["fitted"] else " (fixed)"
+        mark = "" if key.replace("_deg", "") in r.fitted else " (fixed)"
         lines.append(f"| `{key}` | {_fmt(value)}{mark} |")
     if "phi_p_deg" not in layer:
-        lines.append(f"| `phi_p_deg` | 0{'' if 'phi_p' in r['fitted'] else ' (fixed: tilt in the plane of incidence)'} |")
+        lines.append(f"| `phi_p_deg` | 0{'' if 'phi_p' in r.fitted else ' (fixed: tilt in the plane of incidence)'} |")
     lines += [
         "",
         "## Starts",
         "",
-        f"{r['starts_at_optimum']} of {r['starts_refined']} refined starts reached the best optimum (their loss "
+        f"{r.starts_at_optimum} of {r.starts_refined} refined starts reached the best optimum (their loss "
         "within 1% of the best's on the best start's objective: final losses are not comparable across starts, "
         "whose weights and lobe probabilities are set where each pass begins):",
         "",
@@ -206,25 +208,25 @@ def fit_report(result, meas):
         "",
         "## Monte Carlo budget",
         "",
-        f"{r['walks']} walks per incidence direction, {r['bounces']} bounces per walk{_budget_name(r)}, one fixed key "
-        f"(common random numbers); the Jacobian from the first {r['jacobian_walks']} of those walks. "
-        "Energy left in unfinished walks: at most "
-        f"{r['unfinished_energy']:.2g} of the incident energy.",
+        f"{r.budget.walks} walks per incidence direction, {r.budget.bounces} bounces per walk{_budget_name(r)}, "
+        f"one fixed key (common random numbers); the Jacobian from the first {r.budget.jacobian_walks} of those "
+        "walks. Energy left in unfinished walks: at most "
+        f"{r.unfinished_energy:.2g} of the incident energy.",
     ]
-    if r["connection"] == "mis":
+    if r.connection == "mis":
         lines.append("The measured highlight is narrower than the angular sampling (near-mirror platelets): each "
                      "scattering vertex connects to the viewer both by next-event estimation and by a flight drawn "
                      "back through the platelet lobe, weighted by multiple importance sampling "
                      "(`simulate(connection=\"mis\")`), which keeps rare walks from dominating the estimate.")
     if meas.std is not None:
         lines.append(f"Median Monte Carlo standard error of the model relative to the measurement std: "
-                     f"{r['mc_error_median']:.2f}; the fit weights each residual by the two combined.")
+                     f"{r.mc_error_median:.2f}; the fit weights each residual by the two combined.")
         lines.append(f"Relative to the values (medians over points and channels): Monte Carlo error "
                      f"{100 * np.median(result.model_std / np.maximum(np.abs(result.model), 1e-30)):.1f}%, "
                      f"measurement noise {100 * np.median(meas.std / np.maximum(np.abs(meas.values), 1e-30)):.1f}%. "
                      "A larger budget (`--budget`, `--walks`) shrinks the first as 1/sqrt(walks).")
     else:
-        lines.append(f"Median Monte Carlo standard error of the model: {r['mc_error_median']:.3g} (the file has no std).")
+        lines.append(f"Median Monte Carlo standard error of the model: {r.mc_error_median:.3g} (the file has no std).")
         lines += _unweighted_lines(meas, result.model)
     lines += ["", "![measured, fitted and difference](fit.png)", ""]
     return "\n".join(lines)
@@ -238,7 +240,7 @@ def write_fit(result, meas, out_dir, *, force=False):
     unless ``force``.
     """
     with staged_outputs(out_dir, FIT_FILES, force) as tmp:
-        save_params(result.material, os.path.join(tmp, "params.json"), extra={"fit": result.record})
+        save_params(result.material, os.path.join(tmp, "params.json"), extra={"fit": result.record.to_json()})
         with open(os.path.join(tmp, "report.md"), "w", encoding="utf-8") as fh:
             fh.write(fit_report(result, meas))
         fit_figure(meas, result.model, os.path.join(tmp, "fit.png"))
