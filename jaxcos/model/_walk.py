@@ -671,6 +671,9 @@ class Estimate(eqx.Module):
     unfinished: jnp.ndarray
 
 
+_first_order = single_scattering  # simulate's argument of that name shadows the function there
+
+
 @eqx.filter_jit
 def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNCES, single_scattering="exact",
              lobe_probs=None, incidence_batch=None, sampling=None, connection="nee"):
@@ -743,7 +746,7 @@ def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNC
     f = jnp.mean(acc, axis=1)
     stderr = jnp.std(acc, axis=1, ddof=1) / jnp.sqrt(walks) if walks > 1 else jnp.full_like(f, jnp.inf)
     if exact:
-        f = f + single_scattering(med, material.base_albedo, query.wi, query.wo)
+        f = f + _first_order(med, material.base_albedo, query.wi, query.wo)
     pick = lambda a: a[query.pair_i, query.pair_j]
     return Estimate(
         f=pick(f),
