@@ -28,6 +28,7 @@ from .model import (
     PRODUCTS,
     VARIANTS,
     Estimate,
+    Interface,
     Layer,
     Material,
     Query,
@@ -40,10 +41,11 @@ from .model import (
 )
 from .io import Measurements, import_raw, load_angles, load_measurements, load_params, save_measurements, save_params
 from .render import render
-from .model._kubelka_munk import KubelkaMunk, km_combine, km_invert, km_layer, km_over_background, km_r_inf
+from .model import KubelkaMunk, km_combine, km_invert, km_layer, km_over_background, km_r_inf
 from .inference import (
     ABLATION_VARIANTS,
     AblationResult,
+    FitRecord,
     FitResult,
     Posterior,
     ablate,

@@ -515,3 +515,54 @@ def test_unweighted_report_says_where_the_loss_comes_from():
     close[:2] = 11.0
     text = "\n".join(_unweighted_lines(meas, close))
     assert "carry 98% of L2" in text and "by 10% in the median" in text and "favours" not in text
+
+
+# --- the top interface and the noise model --------------------------------------------------------------
+
+
+def test_interface_parameterization_round_trip_and_bounds():
+    """eta and alpha_s are fitted last, map back to themselves, and stay in their ranges at extreme coordinates."""
+    param = parameterization("single_lobe", interface=True)
+    assert param.names[-2:] == ("eta", "alpha_s") and param.size == 12 and param.interface
+    m = jaxcos.Material(layers=TRUTH.layers, variant="single_lobe", interface=jaxcos.Interface(eta=1.45, alpha_s=0.03))
+    back = param.to_material(param.from_material(m))
+    np.testing.assert_allclose([float(back.interface.eta), float(back.interface.alpha_s)], [1.45, 0.03], rtol=1e-4)
+    assert parameterization("single_lobe").to_material(jnp.zeros(10)).interface is None
+    low, high = param.bounds()
+    np.testing.assert_allclose([low[-2], high[-2], low[-1], high[-1]], [1.01, 2.5, 0.005, 1.0])
+    for x in (jnp.full(param.size, 40.0), jnp.full(param.size, -40.0)):
+        top = param.to_material(x).interface
+        assert 1.01 - 1e-6 <= float(top.eta) <= 2.5 + 1e-6 and 0.005 - 1e-7 <= float(top.alpha_s) <= 1.0 + 1e-6
+
+
+def test_fit_with_interface_writes_it(tmp_path):
+    """`fit(interface=True)` returns a material with an interface; params.json carries it, the report names it."""
+    meas = _tiny()
+    result = fit(meas, variant="single_lobe", walks=16, bounces=8, jacobian_walks=8, starts=1, interface=True,
+                 final_step=False)
+    assert result.material.interface is not None
+    assert result.record.fitted[-2:] == ("eta", "alpha_s")
+    jaxcos.write_fit(result, meas, tmp_path / "out")
+    data = json.loads((tmp_path / "out" / "params.json").read_text())
+    assert set(data["interface"]) == {"eta", "alpha_s"}
+    assert jaxcos.load_params(tmp_path / "out" / "params.json").interface is not None
+    assert "interface.alpha_s" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_noise_option_weighs_a_file_without_std(tmp_path, capsys):
+    """--noise REL,ABS sets std = REL |value| + ABS; malformed values and files with std are one-line errors."""
+    from jaxcos.cli._fit import parse_noise
+
+    assert parse_noise("0.05") == (0.05, 0.0) and parse_noise("0.05,0.005") == (0.05, 0.005)
+    for bad in ("a", "0.1,0.2,0.3", ""):
+        with pytest.raises(InputError, match="--noise"):
+            parse_noise(bad)
+    meas = dataclasses.replace(_tiny(), std=None)
+    np.testing.assert_allclose(meas.with_noise(0.05, 0.005).std, 0.05 * 0.2 + 0.005)
+    with pytest.raises(InputError, match="std columns"):
+        _tiny().with_noise(0.05)
+    path = tmp_path / "with_std.csv"
+    jaxcos.save_measurements(_tiny(), path)
+    assert main(["fit", str(path), "--out", str(tmp_path / "o"), "--noise", "0.05"]) == 2
+    assert "std columns" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

@@ -1,5 +1,7 @@
 """The Kubelka-Munk baseline: closed forms, limits, the two-flux equations, inversion, specular lobe, fit."""
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -7,7 +9,7 @@ import pytest
 from scipy.integrate import solve_bvp
 
 import jaxcos
-from jaxcos.inference._kubelka_munk import KM_N_PARAMS, km_from_x, km_labels, km_to_x, make_km_problem
+from jaxcos.inference._kubelka_munk import KM_N_PARAMS, KM_PARAMETERS, km_from_x, km_labels, km_to_x, make_km_problem
 from jaxcos.model._kubelka_munk import beckmann, directions, kelemen_specular
 from jaxcos.io._measurements import Measurements
 
@@ -186,9 +188,13 @@ def test_fit_recovers_the_model_that_made_the_data():
     meas = Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros_like(ti), values=values, std=0.01 + 0.02 * values,
                         quantity="reflectance_factor", path="km.csv")
     result = jaxcos.fit_kubelka_munk(meas, seed=1, starts=5)
-    assert result.record["n_params"] == 8 and result.record["loss"] < 1e-3
+    assert result.record.n_params == 8 and result.record.loss < 1e-3
     np.testing.assert_allclose(result.model, values, rtol=1e-3, atol=1e-4)
-    assert float(make_km_problem(meas).loss(result.x)) == pytest.approx(result.record["loss"], abs=1e-5)
+    assert float(make_km_problem(meas).loss(result.x)) == pytest.approx(result.record.loss, abs=1e-5)
+    fit = result.record.to_json()
+    assert fit["variant"] == "kubelka_munk" and fit["fitted"] == list(KM_PARAMETERS) and "reduced_chi2" in fit
+    assert fit["parameters"]["thickness"] == 1.0 and fit["substrate"] == [0.0, 0.0, 0.0]
+    json.dumps(fit)
 
 
 def test_bad_substrate_is_a_clear_error():

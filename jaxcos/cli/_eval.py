@@ -9,7 +9,6 @@ Example::
     f, f_std = evaluate(jaxcos.published("dewy1"), ti, to, po, jax.random.key(0))
 """
 
-import os
 
 import jax
 import numpy as np

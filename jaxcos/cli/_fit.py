@@ -21,6 +21,18 @@ def _summary(record, out):
             f"agree. Wrote {', '.join(os.path.join(out, n) for n in FIT_FILES)}.")
 
 
+def parse_noise(text):
+    """``REL[,ABS]`` of ``--noise`` as two floats; one sentence on a malformed value."""
+    parts = text.split(",")
+    try:
+        if len(parts) not in (1, 2):
+            raise ValueError
+        levels = [float(part) for part in parts] + [0.0] * (2 - len(parts))
+    except ValueError:
+        raise InputError(f"--noise takes REL or REL,ABS (for example 0.05,0.005), not {text!r}.") from None
+    return levels[0], levels[1]
+
+
 def _cmd(args):
     check_variant(args.variant)
     walks, bounces = resolve_budget(args.budget, walks=args.walks, bounces=args.bounces,
@@ -28,11 +40,14 @@ def _cmd(args):
     if args.jacobian_walks < 1:
         raise InputError(f"--jacobian-walks must be a positive integer, not {args.jacobian_walks}.")
     refuse_overwrite([os.path.join(args.out, name) for name in FIT_FILES], args.force)
+    noise = parse_noise(args.noise) if args.noise is not None else None
     meas = load_measurements(args.measurements)
+    if noise is not None:
+        meas = meas.with_noise(*noise)
     start = load_params(args.start) if args.start else None
     result = fit(meas, variant=args.variant, method=args.method, seed=args.seed, walks=walks, bounces=bounces,
                  jacobian_walks=args.jacobian_walks, starts=args.starts, fit_t=args.fit_t, fit_phi=args.fit_phi,
-                 start=start, t=args.t, progress=progress("fit"))
+                 start=start, t=args.t, interface=args.interface or None, progress=progress("fit"))
     write_fit(result, meas, args.out, force=args.force)
     print(_summary(result.record, args.out))
 
@@ -60,5 +75,12 @@ def add_command(sub):
     p.add_argument("--t", type=float, default=16.0, help="optical thickness when it is not fitted (default 16)")
     p.add_argument("--fit-t", action="store_true", help="also fit the optical thickness t")
     p.add_argument("--fit-phi", action="store_true", help="also fit the tilt azimuth phi_p (default: held at 0)")
+    p.add_argument("--interface", action="store_true",
+                   help="give the material a rough dielectric top interface and fit its eta (1.01-2.5) and "
+                        "alpha_s (0.005-1) with the rest (docs/model.md section 3a; the default with a --start "
+                        "that has one)")
+    p.add_argument("--noise", metavar="REL[,ABS]", default=None,
+                   help="for a file without std columns: weigh each point by the noise model "
+                        "std = REL * value + ABS (for example 0.05,0.005) instead of minimising the plain L2")
     p.add_argument("--force", action="store_true", help="overwrite an existing result in DIR")
     p.set_defaults(func=_cmd)

@@ -7,6 +7,7 @@ The scene, the units and the exposure are those of :mod:`jaxcos.render`
 written by :func:`jaxcos.render.write_png`.
 """
 
+import dataclasses
 import math
 import os
 import time
@@ -17,7 +18,6 @@ import jax.numpy as jnp
 
 from .._errors import InputError, refuse_overwrite
 from ..io import encode_srgb, load_params
-from ..model import Material
 from ..render import EXPOSURE, RENDER_BOUNCES, RENDER_WALKS, SKIN_ALBEDO, on_base, shade, tabulate, write_png
 from ._main import progress
 
@@ -37,7 +37,7 @@ def _parse_rgb(text):
 def _with_thickness(material, t):
     """``material`` with the optical thickness of every layer set to ``t``."""
     layers = tuple(eqx.tree_at(lambda l: l.t, layer, jnp.asarray(t, layer.t.dtype)) for layer in material.layers)
-    return Material(layers=layers, base_albedo=material.base_albedo, variant=material.variant)
+    return dataclasses.replace(material, layers=layers)
 
 
 def _cmd_render(args):

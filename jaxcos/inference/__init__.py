@@ -1,7 +1,19 @@
 """Fitting, posteriors, ablation and the accuracy benchmark: the model against measurements."""
 
-from ._fit import FIT_BOUNCES, FIT_JACOBIAN_WALKS, FIT_WALKS, FitResult, fit, make_problem, parameterization
+from ._fit import (
+    FIT_BOUNCES,
+    FIT_JACOBIAN_WALKS,
+    FIT_WALKS,
+    Budget,
+    CheckResult,
+    FinalStep,
+    FitRecord,
+    FitResult,
+    fit,
+    make_problem,
+    parameterization,
+)
 from ._posterior import CHAIN_TAUS, MAX_STEPS, WALKERS, Posterior, uncertainty
 from ._ablate import ABLATION_BOUNCES, ABLATION_VARIANTS, ABLATION_WALKS, CSV_COLUMNS, AblationResult, ablate, check_variants
-from ._kubelka_munk import KM_N_PARAMS, KMFitResult, fit_kubelka_munk
+from ._kubelka_munk import KM_N_PARAMS, KMFitRecord, KMFitResult, fit_kubelka_munk
 from ._bench import accuracy_benchmark, bsdf_problem

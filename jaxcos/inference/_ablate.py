@@ -37,8 +37,10 @@ Protocol, per file:
 
 Both fits return results with the same attributes, which is all the
 ablation reads: ``material``, ``model`` and ``model_std`` (``None`` for the
-deterministic Kubelka-Munk model) and a ``record`` of the loss statistics
-(``loss``, ``l2``, ``rmse``, ``n_params``, ``time_s``).
+deterministic Kubelka-Munk model) and a typed ``record``
+(:class:`~jaxcos.inference.FitRecord` or
+:class:`~jaxcos.inference.KMFitRecord`) whose loss statistics have the same
+attribute names (``loss``, ``l2``, ``rmse``, ``n_params``, ``time_s``).
 
 All Monte Carlo variants use the same budget (``walks``, ``bounces``) and seed,
 so the comparison is like for like. Fits of one variant on files of one shape
@@ -145,8 +147,8 @@ def embed(material, variant, reference):
 
 def _score(meas, result):
     """What "better" means when two fits of one variant compete: chi-square with the file's std, else L2."""
-    chi2 = information_criteria(meas, result.model, result.record["n_params"])[0]
-    return result.record["l2"] if math.isnan(chi2) else chi2
+    chi2 = information_criteria(meas, result.model, result.record.n_params)[0]
+    return result.record.l2 if math.isnan(chi2) else chi2
 
 
 def n_params(variant):
@@ -312,13 +314,12 @@ def _real(result, meas):
     n = meas.n_points
     if result.model.shape[0] == n:
         return result
-    record = dict(result.record)
-    record.update(fit_statistics(meas, result.model[:n], record["loss"], record["n_params"]))
+    stats = fit_statistics(meas, result.model[:n], result.record.loss, result.record.n_params)
     cut = dict(model=result.model[:n])
     if result.model_std is not None:
         cut["model_std"] = result.model_std[:n]
-        record["mc_error_median"] = float(np.median(cut["model_std"] / (meas.std if meas.std is not None else 1.0)))
-    return dataclasses.replace(result, record=record, **cut)
+        stats["mc_error_median"] = float(np.median(cut["model_std"] / (meas.std if meas.std is not None else 1.0)))
+    return dataclasses.replace(result, record=dataclasses.replace(result.record, **stats), **cut)
 
 
 def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLATION_WALKS, bounces=ABLATION_BOUNCES,
@@ -411,18 +412,18 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
         for variant in variants:
             _, label, result = kept[variant]
             record = result.record
-            chi2, aic, bic = information_criteria(meas, result.model, record["n_params"])
-            dof = max(meas.values.size - record["n_params"], 1)
+            chi2, aic, bic = information_criteria(meas, result.model, record.n_params)
+            dof = max(meas.values.size - record.n_params, 1)
             rows.append(dict(
-                file=name, variant=variant, l2=record["l2"], rmse=record["rmse"],
+                file=name, variant=variant, l2=record.l2, rmse=record.rmse,
                 delta_e2000=mean_delta_e2000(meas.values, result.model, meas.quantity, exposure),
-                n_params=record["n_params"], aic=aic, bic=bic, time_s=round(times[variant], 2), chi2=chi2,
-                reduced_chi2=chi2 / dof, n_points=meas.n_points, loss=record["loss"], start=label,
+                n_params=record.n_params, aic=aic, bic=bic, time_s=round(times[variant], 2), chi2=chi2,
+                reduced_chi2=chi2 / dof, n_points=meas.n_points, loss=record.loss, start=label,
                 walks=budget["walks"] if variant != "kubelka_munk" else "",
                 bounces=budget["bounces"] if variant != "kubelka_munk" else "", seed=seed,
             ))
             fits[(index, variant)] = result
-            say(f"{base} {variant}: L2 {record['l2']:.4g}, BIC {bic:.1f} ({times[variant]:.1f} s, kept the {label})")
+            say(f"{base} {variant}: L2 {record.l2:.4g}, BIC {bic:.1f} ({times[variant]:.1f} s, kept the {label})")
     settings = dict(seed=int(seed), walks=int(walks), bounces=int(bounces), starts=int(starts), refine=int(refine),
                     reduced_refine=int(reduced_refine), exposure=float(exposure), padded_shape=shape,
                     total_time_s=round(time.perf_counter() - t_start, 1), load_average=(load_start, _load_average()))

@@ -317,8 +317,7 @@ def _check(material, meas, grid_query, truth, settings):
     run = lambda m, q: np.asarray(simulate(m, q, key, walks=walks, bounces=bounces).f, float)
     measured = make_query(meas.theta_i, meas.theta_o, meas.phi_o)
     f, f_true = run(material, measured), run(truth, measured)
-    scale = np.pi if meas.quantity == "reflectance_factor" else 1.0
-    chi2 = float(np.sum(((scale * f - meas.values) / meas.std) ** 2))
+    chi2 = float(np.sum(((meas.scale * f - meas.values) / meas.std) ** 2))
     a, b = run(material, grid_query), run(truth, grid_query)
     rms = lambda x, y: float(np.sqrt(np.mean(((x - y) / y) ** 2)))
     return chi2, rms(a, b), rms(f, f_true)
@@ -350,13 +349,13 @@ def fit_budgets(settings, say):
         chi2, appearance, at_measured = _check(result.material, meas, grid_query, truth, settings)
         r = result.record
         rel_mc = np.median(result.model_std / np.maximum(np.abs(result.model), 1e-30))
-        rec = dict(walks=walks, bounces=bounces, time_s=r["time_s"], cpu_s=cpu, load=[load_before, load_after],
-                   iterations=r["iterations"], reduced_chi2_fit=r.get("reduced_chi2"),
-                   reduced_chi2_noise_only=r.get("reduced_chi2_noise_only"),
-                   mc_error_over_noise=r["mc_error_median"], mc_rel_error_median=float(rel_mc),
-                   reduced_chi2_checked=chi2 / (r["n_points"] * 3 - r["n_params"]),
+        rec = dict(walks=walks, bounces=bounces, time_s=r.time_s, cpu_s=cpu, load=[load_before, load_after],
+                   iterations=r.iterations, reduced_chi2_fit=r.reduced_chi2,
+                   reduced_chi2_noise_only=r.reduced_chi2_noise_only,
+                   mc_error_over_noise=r.mc_error_median, mc_rel_error_median=float(rel_mc),
+                   reduced_chi2_checked=chi2 / (r.n_points * 3 - r.n_params),
                    bsdf_rms_rel_error=appearance, bsdf_rms_rel_error_measured=at_measured,
-                   starts_at_optimum=r["starts_at_optimum"],
+                   starts_at_optimum=r.starts_at_optimum,
                    param_abs_errors=_param_errors(result.material, truth),
                    fitted=material_to_dict(result.material)["layers"][0])
         records.append(rec)

@@ -49,7 +49,7 @@ import numpy as np
 import optimistix as optx
 
 from .._errors import InputError
-from ..model import FIXED, Layer, Material, check_variant
+from ..model import FIXED, Interface, Layer, Material, check_variant
 from ..model import lobe_probabilities, make_query, simulate
 
 FIT_WALKS = 1024
@@ -122,6 +122,10 @@ _FIXED_PENDING = {"single_lobe": {"g2": 0.0}}
 _EPS = 1e-5
 _G_MAX = 0.9999  # |g| = 1 is a delta function: the map keeps float32 iterates off it
 _ALPHA_MIN = 1e-4  # alpha_p = 0 is a mirror with no width
+INTERFACE_NAMES = ("eta", "alpha_s")
+"""The parameters of a top interface (docs/model.md section 3a), fitted with ``interface=True``."""
+# The start of a fitted interface: a varnish-like index and a moderately rough surface.
+_INTERFACE_DEFAULT = dict(eta=1.5, alpha_s=0.1)
 
 _RANGES = {
     # name: (map, low, high). The physical range of a fitted parameter, the support of a uniform prior
@@ -133,6 +137,9 @@ _RANGES = {
     "alpha_p": ("logistic", _ALPHA_MIN, 1.0), "theta_p": ("logistic", 0.0, 90.0),
     "g1": ("tanh", -_G_MAX, _G_MAX), "g2": ("tanh", -_G_MAX, _G_MAX), "phi_p": ("tanh", -180.0, 180.0),
     "t": ("exp", 0.0, 1e3),
+    # the top interface: eta = 1 is no interface (a variant, never a value); alpha_s log-logistic,
+    # low (high / low)^sigmoid(x), since gloss spans decades of roughness
+    "eta": ("logistic", 1.01, 2.5), "alpha_s": ("loglogistic", 0.005, 1.0),
 }
 
 
@@ -146,6 +153,10 @@ def _transforms(kind, low, high):
     if kind == "logistic":
         return (lambda x: low + (high - low) * jax.nn.sigmoid(x),
                 lambda v: _unit_to_x((np.asarray(v) - low) / (high - low)))
+    if kind == "loglogistic":
+        ratio = float(np.log(high / low))
+        return (lambda x: low * jnp.exp(ratio * jax.nn.sigmoid(x)),
+                lambda v: _unit_to_x(np.log(np.asarray(v) / low) / ratio))
     if kind == "tanh":
         return (lambda x: high * jnp.tanh(x),
                 lambda v: np.arctanh(np.clip(np.asarray(v) / high, -1 + _EPS, 1 - _EPS)))
@@ -166,13 +177,19 @@ class Parameterization(eqx.Module):
     Attributes:
         variant: the model variant (static).
         names: the fitted parameters in order (static); ``t`` and ``phi_p``
-            are included when asked for.
+            are included when asked for, ``eta`` and ``alpha_s`` (last) when
+            the material has a top interface.
         fixed: the values of the parameters that are not fitted.
     """
 
     variant: str = eqx.field(static=True)
     names: tuple = eqx.field(static=True)
     fixed: dict
+
+    @property
+    def interface(self):
+        """Whether the material has a top interface (its ``eta`` and ``alpha_s`` are then fitted)."""
+        return INTERFACE_NAMES[0] in self.names
 
     @property
     def size(self):
@@ -204,7 +221,9 @@ class Parameterization(eqx.Module):
         """The material with the physical values ``v`` (no bounds are checked)."""
         values = dict(self.fixed)
         values.update({n: part if part.shape[0] > 1 else part[0] for n, part in self._split(v)})
-        return Material(layers=(Layer(**values),), variant=self.variant)
+        top = {n: values.pop(n) for n in INTERFACE_NAMES if n in values}
+        interface = Interface(**top) if self.interface else None
+        return Material(layers=(Layer(**values),), variant=self.variant, interface=interface)
 
     def colouring(self):
         """Seeds of the compressed Jacobian: ``(seeds, column, channel)``.
@@ -235,18 +254,25 @@ class Parameterization(eqx.Module):
         return np.array(lows), np.array(highs)
 
     def from_material(self, material):
+        """The unbounded coordinates of ``material``; without an interface, a fitted one starts at its default."""
         layer = material.layers[0]
-        parts = [np.atleast_1d(_TRANSFORMS[n][1](np.asarray(getattr(layer, n)))) for n in self.names]
+        top = _INTERFACE_DEFAULT if material.interface is None else \
+            {n: getattr(material.interface, n) for n in INTERFACE_NAMES}
+        value = lambda n: top[n] if n in INTERFACE_NAMES else getattr(layer, n)
+        parts = [np.atleast_1d(_TRANSFORMS[n][1](np.asarray(value(n)))) for n in self.names]
         return jnp.asarray(np.concatenate(parts), dtype=jnp.result_type(float))
 
 
-def parameterization(variant="two_lobe", *, fit_t=False, fit_phi=False, template=None):
+def parameterization(variant="two_lobe", *, fit_t=False, fit_phi=False, interface=False, template=None):
     """The :class:`Parameterization` of ``variant``; non-fitted values come from ``template`` or the defaults.
 
-    The values the variant fixes (:func:`fixed_values`) override both.
+    The values the variant fixes (:func:`fixed_values`) override both. With
+    ``interface``, the material has a top interface whose ``eta`` and
+    ``alpha_s`` are fitted with the rest (docs/model.md section 3a).
     """
     check_variant(variant)
-    names = _FREE[variant] + (("t",) if fit_t else ()) + (("phi_p",) if fit_phi else ())
+    names = (_FREE[variant] + (("t",) if fit_t else ()) + (("phi_p",) if fit_phi else ())
+             + (INTERFACE_NAMES if interface else ()))
     base = dict(_DEFAULT)
     if template is not None:
         layer = template.layers[0]
@@ -264,7 +290,7 @@ class Problem(eqx.Module):
 
     ``residuals(x)`` are ``(model - measured) / std``, flattened over points
     and channels; ``model`` is in the file's quantity (``scale`` times the
-    BSDF, :func:`_quantity_scale`). Their value uses ``walks`` walks; their
+    BSDF, :attr:`jaxcos.io.Measurements.scale`). Their value uses ``walks`` walks; their
     Jacobian (forward mode) the first ``jacobian_walks`` of them (all when
     ``None``).
     """
@@ -344,14 +370,6 @@ def _residuals_jvp(primals, tangents):
     return y, jac @ dx
 
 
-def _quantity_scale(meas):
-    """The factor from a BSDF ``f`` (1/sr) to the quantity of ``meas``: ``pi`` for a reflectance factor, else 1.
-
-    A reflectance factor is ``pi f`` (docs/formats.md, "Measurements").
-    """
-    return float(np.pi) if meas.quantity == "reflectance_factor" else 1.0
-
-
 def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe_probs=None, reference=None,
                  jacobian_walks=None, connection=None):
     """The least-squares :class:`Problem` of fitting ``param`` to measurements ``meas``.
@@ -381,7 +399,7 @@ def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe
         query=make_query(meas.theta_i, meas.theta_o, meas.phi_o),
         measured=jnp.asarray(meas.values, dtype),
         sigma=jnp.asarray(sigma, dtype),
-        scale=_quantity_scale(meas),
+        scale=float(meas.scale),
         key=key,
         lobe_probs=jnp.asarray(lobe_probs, dtype),
         walks=walks,
@@ -699,6 +717,8 @@ def random_starts(param, n, rng, tilt=None):
             g2=rng.uniform(-0.6, 0.3), w_g=rng.uniform(0.2, 0.95), albedo_p=rng.uniform(0.3, 0.99, 3),
             alpha_p=10 ** rng.uniform(-2.5, 0), theta_p=rng.uniform(0, 80), t=rng.uniform(1, 30), phi_p=0.0,
         )
+        if param.interface:  # drawn after the rest, so that the other parameters' draws do not change
+            values.update(eta=rng.uniform(1.2, 1.8), alpha_s=10 ** rng.uniform(-2, np.log10(0.5)))
         if tilt is not None and i >= n - n // 3:
             values.update(theta_p=np.clip(tilt + rng.uniform(-0.5, 0.5), 0.0, 89.9),
                           alpha_p=10 ** rng.uniform(-3, np.log10(0.05)))
@@ -740,27 +760,13 @@ def _lobe_probabilities_at(param, x):
 # --- typed results ------------------------------------------------------------------
 
 
-class _JsonView(dict):
-    """TEMPORARY bridge: a record also reads as its own :meth:`to_json` dictionary.
-
-    For code not yet moved to the attributes: ``record["l2"]``,
-    ``record["check"]["walks"]``, ``"reduced_chi2" in record``,
-    ``record.get(...)``, ``dict(record)`` and ``json.dumps(record)`` see exactly
-    the dictionary a fit wrote before the records were typed. Delete this class
-    (and the base of the records) once nothing reads a record by string key.
-    """
-
-    def __post_init__(self):  # TEMPORARY bridge
-        dict.update(self, self.to_json())
-
-
 def _upper_bound(material_chi2, se):
     """The number a fit ranks materials by: the pair estimate plus twice its SE (see :data:`CHECK_FACTOR`)."""
     return material_chi2 + 2 * se
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class CheckResult(_JsonView):
+class CheckResult:
     """A material evaluated under independent keys against the data (:func:`check`).
 
     Weights: the measurement std, or none without std columns.
@@ -807,7 +813,7 @@ class CheckResult(_JsonView):
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class FinalStep(_JsonView):
+class FinalStep:
     """The fit's last step (:func:`polish`): its damping, its checks before and after, whether it was kept.
 
     ``check_after`` is ``None`` where the step was not finite (and so not taken).
@@ -863,7 +869,7 @@ class Budget:
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class FitRecord(_JsonView):
+class FitRecord:
     """What a fit did and how well it fits: the ``"fit"`` record of ``params.json`` (docs/formats.md).
 
     Attributes:
@@ -1341,7 +1347,7 @@ def summarise(meas, refined, selection, polished, *, method, variant, seed, budg
 
 def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounces=FIT_BOUNCES,
         jacobian_walks=FIT_JACOBIAN_WALKS, starts=15, refine=1, fit_t=False, fit_phi=False, start=None, t=16.0,
-        final_step=True, progress=None):
+        interface=None, final_step=True, progress=None):
     """Fit a one-layer material of ``variant`` to the measurements ``meas``.
 
     Args:
@@ -1376,6 +1382,9 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         start: a :class:`Material` to start from instead of the multi-start
             (only that start is refined).
         t: the optical thickness when it is not fitted (the paper's protocol: 16).
+        interface: fit a rough dielectric top interface, its ``eta`` and
+            ``alpha_s`` with the rest (docs/model.md section 3a); ``None``
+            (the default) fits one exactly when ``start`` has one.
         final_step: take the last step on the best check's residuals (LM;
             :func:`polish`). ``False`` keeps the minimum of the fixed-key
             objective itself.
@@ -1390,7 +1399,9 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     say = progress or _silent
     started = time.perf_counter()
     template = start if start is not None else Material(layers=(Layer(**{**_DEFAULT, "t": t}),))
-    param = parameterization(variant, fit_t=fit_t, fit_phi=fit_phi, template=template)
+    if interface is None:
+        interface = start is not None and start.interface is not None
+    param = parameterization(variant, fit_t=fit_t, fit_phi=fit_phi, interface=interface, template=template)
     key = jax.random.key(seed)
     x_default = param.from_material(template)
     budget = Budget.of(walks, bounces, jacobian_walks)

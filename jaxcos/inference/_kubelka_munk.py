@@ -22,7 +22,7 @@ Example::
     import jaxcos
     meas = jaxcos.load_measurements("measurements/matte2.csv")
     result = jaxcos.fit_kubelka_munk(meas)
-    result.material, result.record["l2"]
+    result.material, result.record.l2
 """
 
 import dataclasses
@@ -35,7 +35,7 @@ import numpy as np
 import optimistix as optx
 
 from .._errors import InputError
-from ..model._kubelka_munk import KubelkaMunk, directions, km_remission
+from ..model import KubelkaMunk, directions, km_remission
 from ._fit import fit_statistics
 
 KM_PARAMETERS = ("r_inf", "sx", "roughness", "f0")
@@ -119,7 +119,7 @@ def make_km_problem(meas, substrate=0.0):
         raise InputError(f"substrate reflectance {rg.tolist()} must lie in [0, 1).")
     wi, wo = directions(meas.theta_i, meas.theta_o, meas.phi_o)
     return KMProblem(wi=wi, wo=wo, measured=_asarray(meas.values), sigma=_asarray(sigma), substrate=_asarray(rg),
-                     scale=float(np.pi) if meas.quantity == "reflectance_factor" else 1.0)
+                     scale=float(meas.scale))
 
 
 @eqx.filter_jit
@@ -140,7 +140,7 @@ def km_starts(meas, n, rng):
 
     Points with an infinite std (zero weight) do not count in the median.
     """
-    to_rf = np.pi if meas.quantity == "brdf" else 1.0
+    to_rf = np.pi / meas.scale  # to a reflectance factor
     real = np.ones(meas.n_points, bool) if meas.std is None else np.all(np.isfinite(meas.std), axis=1)
     level = np.clip(np.median(meas.values[real] * to_rf, axis=0), 0.05, 0.95)
     draws = [km_to_x(level, 10.0, 0.2, 0.04)]
@@ -150,16 +150,71 @@ def km_starts(meas, n, rng):
     return jnp.stack(draws)
 
 
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class KMFitRecord:
+    """What a Kubelka-Munk fit did and how well it fits: its ``"fit"`` record (:meth:`to_json`).
+
+    The fields it shares with :class:`jaxcos.inference.FitRecord` (``loss``,
+    ``l2``, ``rmse``, ``n_points``, ``reduced_chi2``,
+    ``reduced_chi2_noise_only``, ``n_params``, ``iterations``, ``time_s``,
+    ``method``, ``variant``, ``seed``, ``fitted``, ``starts_refined``,
+    ``starts_at_optimum``) mean the same, so the ablation reads both fits
+    alike.
+
+    Attributes:
+        loss, l2, rmse, n_points, reduced_chi2, reduced_chi2_noise_only: as
+            :func:`jaxcos.inference._fit.fit_statistics` gives them (the reduced
+            chi-squares ``None`` without std columns; the model has no Monte
+            Carlo error, so the two are equal).
+        iterations: Levenberg-Marquardt steps of the best start.
+        time_s: wall time of the fit, seconds.
+        method: ``"lm"``; ``variant``: ``"kubelka_munk"``.
+        seed: seeds the random starts.
+        n_params, fitted: :data:`KM_N_PARAMS` and :data:`KM_PARAMETERS`.
+        starts_refined: starts refined (all of them); ``starts_at_optimum``:
+            those whose loss is within ``1e-3 loss + 1`` of the best's.
+        substrate: the substrate's reflectance (RGB).
+        parameters: the fitted model as plain numbers (``scattering``,
+            ``absorption``, ``r_inf``, RGB lists; ``thickness``, ``roughness``, ``f0``).
+    """
+
+    loss: float
+    l2: float
+    rmse: float
+    n_points: int
+    reduced_chi2: float | None = None
+    reduced_chi2_noise_only: float | None = None
+    iterations: int
+    time_s: float
+    method: str = "lm"
+    variant: str = "kubelka_munk"
+    seed: int
+    n_params: int = KM_N_PARAMS
+    fitted: tuple = KM_PARAMETERS
+    starts_refined: int
+    starts_at_optimum: int
+    substrate: tuple
+    parameters: dict
+
+    def to_json(self):
+        """The ``"fit"`` object of the Kubelka-Munk fit (``fits.json`` of the ablation)."""
+        out = dict(loss=self.loss, l2=self.l2, rmse=self.rmse, n_points=self.n_points)
+        if self.reduced_chi2 is not None:
+            out.update(reduced_chi2=self.reduced_chi2, reduced_chi2_noise_only=self.reduced_chi2_noise_only)
+        out.update(iterations=self.iterations, time_s=self.time_s, method=self.method, variant=self.variant,
+                   n_params=self.n_params, fitted=list(self.fitted), starts_refined=self.starts_refined,
+                   starts_at_optimum=self.starts_at_optimum, seed=self.seed, substrate=list(self.substrate),
+                   parameters=self.parameters)
+        return out
+
+
 @dataclasses.dataclass
 class KMFitResult:
     """The outcome of :func:`fit_kubelka_munk`, with the attributes of :class:`jaxcos.FitResult` that apply.
 
     Attributes:
         material: the fitted :class:`KubelkaMunk` (thickness 1).
-        record: ``loss``, ``l2``, ``rmse``, ``reduced_chi2`` (with std), ``n_points``,
-            ``n_params``, ``iterations``, ``time_s``, ``method``, ``variant`` (``"kubelka_munk"``),
-            ``fitted``, ``starts_refined``, ``starts_at_optimum``, ``seed``, ``substrate`` and
-            ``parameters`` (the fitted model as plain numbers).
+        record: its :class:`KMFitRecord` (``record.to_json()``: the ``"fit"`` record).
         model: ``(N, 3)`` the fitted model in the file's quantity.
         model_std: ``None``: the model is deterministic, without Monte Carlo error.
         starts: per start, ``(start index, loss)``.
@@ -168,7 +223,7 @@ class KMFitResult:
     """
 
     material: KubelkaMunk
-    record: dict
+    record: KMFitRecord
     model: np.ndarray
     model_std: np.ndarray | None
     starts: list
@@ -210,13 +265,12 @@ def fit_kubelka_munk(meas, *, seed=0, starts=15, substrate=0.0, max_steps=200, p
     best = int(np.argmin(losses))
     x, loss = xs[best], float(losses[best])
     model = np.asarray(problem.model(x), dtype=float)
-    record = fit_statistics(meas, model, loss, KM_N_PARAMS)
     params = problem.material(x)
     same = int(np.sum(np.abs(losses - loss) <= 1e-3 * loss + 1.0))
-    record.update(
-        iterations=int(steps[best]), time_s=round(time.perf_counter() - t0, 2), method="lm", variant="kubelka_munk",
-        n_params=KM_N_PARAMS, fitted=list(KM_PARAMETERS), starts_refined=int(x0s.shape[0]), starts_at_optimum=same,
-        seed=int(seed), substrate=[float(v) for v in np.asarray(params.substrate)],
+    record = KMFitRecord(
+        **fit_statistics(meas, model, loss, KM_N_PARAMS),
+        iterations=int(steps[best]), time_s=round(time.perf_counter() - t0, 2), starts_refined=int(x0s.shape[0]),
+        starts_at_optimum=same, seed=int(seed), substrate=tuple(float(v) for v in np.asarray(params.substrate)),
         parameters=dict(scattering=[float(v) for v in np.asarray(params.scattering)],
                         absorption=[float(v) for v in np.asarray(params.absorption)],
                         r_inf=[float(v) for v in np.asarray(params.r_inf)], thickness=1.0,

@@ -64,7 +64,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._fit import FIT_BOUNCES, fit, make_problem
+from ._fit import fit, make_problem
 from ..model import lobe_probabilities, simulate
 
 WALKERS = 32
@@ -602,7 +602,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
     v0 = np.asarray(param.to_physical(fit_result.x), float)
     low, high = param.bounds()
     probs = lobe_probabilities(param.physical_to_material(jnp.asarray(v0, jnp.result_type(float))))
-    bounces = int(fit_result.record.get("bounces", FIT_BOUNCES))
+    bounces = int(fit_result.record.budget.bounces)
     # (the second key is unused)
     anchor_key, _, check_key, pilot_key = jax.random.split(jax.random.key(seed), 4)
     problem = make_problem(meas, param, key=anchor_key, walks=hi_walks, bounces=bounces, lobe_probs=probs)

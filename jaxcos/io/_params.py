@@ -16,7 +16,7 @@ import warnings
 import jax.numpy as jnp
 
 from .._errors import InputError
-from ..model import FIXED, VARIANTS, Layer, Material
+from ..model import FIXED, VARIANTS, Interface, Layer, Material
 
 _LAYER_KEYS = {
     # key in params.json: (field, kind, low, high, low_open, high_open)
@@ -30,6 +30,17 @@ _LAYER_KEYS = {
     "alpha_p": ("alpha_p", "scalar", 0.0, 1.0, True, False),
     "theta_p_deg": ("theta_p", "scalar", 0.0, 90.0, False, False),
 }
+
+
+_INTERFACE_KEYS = {
+    # key in "interface": (kind, low, high, low_open, high_open); eta = 1 is no interface (leave the key out)
+    "eta": ("scalar", 1.0, 3.0, True, False),
+    "alpha_s": ("scalar", 0.0, 1.0, True, False),
+}
+
+TOP_LEVEL_KEYS = ("layers", "base", "variant", "interface", "fit")
+"""The keys a ``params.json`` may hold at its top level (docs/formats.md): ``fit`` is the
+record a fit writes (``save_params(..., extra={"fit": ...})``); any other key is an error."""
 
 
 def _number(path, where, key, value, low, high, low_open, high_open):
@@ -57,6 +68,9 @@ def material_from_dict(data, path="params.json"):
     """Build a :class:`Material` from the parsed JSON of docs/formats.md; ``path`` names it in errors."""
     if not isinstance(data, dict):
         raise InputError(f"{path}: the top level must be a JSON object with 'layers' and 'base'.")
+    unknown = sorted(set(data) - set(TOP_LEVEL_KEYS))
+    if unknown:
+        raise InputError(f"{path}: unknown top-level key '{unknown[0]}'; expected {', '.join(TOP_LEVEL_KEYS)}.")
     variant = data.get("variant", "two_lobe")
     if variant not in VARIANTS:
         raise InputError(f"{path}: unknown variant {variant!r}; choose one of {', '.join(VARIANTS)}.")
@@ -94,7 +108,26 @@ def material_from_dict(data, path="params.json"):
         if "albedo" not in base:
             raise InputError(f"{path}: a lambertian base needs an 'albedo' [r, g, b].")
         albedo = _value(path, "base", "albedo", base["albedo"], "rgb", 0.0, 1.0, False, False)
-    return Material(layers=tuple(built), base_albedo=albedo, variant=variant)
+    return Material(layers=tuple(built), base_albedo=albedo, variant=variant, interface=_interface(data, path))
+
+
+def _interface(data, path):
+    """The optional top ``"interface": {"eta": ..., "alpha_s": ...}`` (absent: index-matched, ``None``)."""
+    if "interface" not in data:
+        return None
+    spec = data["interface"]
+    if not isinstance(spec, dict):
+        raise InputError(f"{path}: 'interface' must be an object {{\"eta\": ..., \"alpha_s\": ...}}; leave it out for "
+                         "an index-matched top.")
+    unknown = sorted(set(spec) - set(_INTERFACE_KEYS))
+    if unknown:
+        raise InputError(f"{path}: interface has unknown key '{unknown[0]}'; expected {', '.join(_INTERFACE_KEYS)}.")
+    values = {}
+    for key, (kind, *bounds) in _INTERFACE_KEYS.items():
+        if key not in spec:
+            raise InputError(f"{path}: interface is missing the key '{key}'.")
+        values[key] = _value(path, "interface", key, spec[key], kind, *bounds)
+    return Interface(**values)
 
 
 def material_to_dict(material):
@@ -117,7 +150,10 @@ def material_to_dict(material):
             entry["phi_p_deg"] = num(layer.phi_p)
         layers.append(entry)
     base = {"type": "black"} if material.base_albedo is None else {"type": "lambertian", "albedo": rgb(material.base_albedo)}
-    return {"layers": layers, "base": base, "variant": material.variant}
+    out = {"layers": layers, "base": base, "variant": material.variant}
+    if material.interface is not None:
+        out["interface"] = {"eta": num(material.interface.eta), "alpha_s": num(material.interface.alpha_s)}
+    return out
 
 
 def load_params(path):

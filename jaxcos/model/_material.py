@@ -16,6 +16,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._errors import InputError
+from ._interface import Interface
 
 VARIANTS = ("two_lobe", "single_lobe", "diffusers_only", "platelets_only")
 """Model variants (docs/formats.md): the parts of the model each switches off are
@@ -67,7 +68,7 @@ class Layer(eqx.Module):
 
 
 class Material(eqx.Module):
-    """A stack of :class:`Layer` (top to bottom) over a black or Lambertian base.
+    """A stack of :class:`Layer` (top to bottom) over a black or Lambertian base, optionally under a rough top.
 
     Attributes:
         layers: the layers, top first.
@@ -77,17 +78,29 @@ class Material(eqx.Module):
             no platelets (``c_d = 1``), ``platelets_only`` no diffusers
             (``c_d = 0``), ``single_lobe`` one Henyey-Greenstein lobe
             (``w_g = 1``); the switched-off parameters are ignored.
+        interface: a rough dielectric top boundary (:class:`Interface`,
+            docs/model.md section 3a), or ``None`` (the default): an
+            index-matched top, as in the paper. Like the base, a structural
+            choice: ``None`` simulates exactly the index-matched stack, with no
+            work for an interface.
+
+    Example::
+
+        m = Material(layers=(Layer(...),), interface=Interface(eta=1.5, alpha_s=0.1))
     """
 
     layers: tuple
     base_albedo: jnp.ndarray | None = eqx.field(default=None, converter=lambda x: None if x is None else _rgb(x))
     variant: str = eqx.field(static=True, default="two_lobe")
+    interface: Interface | None = None
 
     def __check_init__(self):
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; expected one of {', '.join(VARIANTS)}")
         if not isinstance(self.layers, tuple) or not self.layers:
             raise ValueError("a Material needs a non-empty tuple of Layers")
+        if self.interface is not None and not isinstance(self.interface, Interface):
+            raise ValueError(f"interface must be an Interface or None, not {type(self.interface).__name__}")
 
     @property
     def has_diffusers(self):
@@ -118,7 +131,7 @@ def with_variant(material, variant):
     fixed = FIXED[variant]
     layers = tuple(eqx.tree_at(lambda l: [getattr(l, k) for k in fixed], layer, [_scalar(v) for v in fixed.values()])
                    if fixed else layer for layer in material.layers)
-    return Material(layers=layers, base_albedo=material.base_albedo, variant=variant)
+    return Material(layers=layers, base_albedo=material.base_albedo, variant=variant, interface=material.interface)
 
 
 # --- the published fits (docs/model.md section 5) -----------------------------------

@@ -71,6 +71,7 @@ Example::
     image.shape  # (128, 256, 3): sRGB in [0, 1]
 """
 
+import dataclasses
 import math
 import os
 
@@ -81,7 +82,7 @@ import numpy as np
 
 from .._errors import InputError, refuse_overwrite
 from ..model import Material
-from ..model import Query, simulate, single_scattering, stack_medium
+from ..model import Query, interface_reflection, simulate, single_scattering, stack_medium
 
 SKIN_ALBEDO = (0.56, 0.28, 0.21)
 """Default base albedo, linear sRGB: the 'light skin' patch of the X-Rite
@@ -190,7 +191,7 @@ class BSDFTable(eqx.Module):
         shape = jnp.broadcast_shapes(wi.shape, wo.shape)
         wi = jnp.broadcast_to(wi, shape).reshape(-1, 3)
         wo = jnp.broadcast_to(wo, shape).reshape(-1, 3)
-        f = single_scattering(stack_medium(self.material), self.material.base_albedo, wi, wo[:, None, :])[:, 0]
+        f = exact_part(self.material, wi, wo[:, None, :])[:, 0]
         return f.reshape(shape)
 
     @eqx.filter_jit
@@ -282,7 +283,23 @@ def _regularized(material):
         return material
     layers = tuple(eqx.tree_at(lambda l: l.alpha_p, layer, jnp.maximum(layer.alpha_p, _ALPHA_MIN))
                    for layer in material.layers)
-    return Material(layers=layers, base_albedo=material.base_albedo, variant=material.variant)
+    return dataclasses.replace(material, layers=layers)
+
+
+def exact_part(material, wi, wo):
+    """The part of the BSDF evaluated exactly per pixel, not interpolated: ``(I, J, 3)`` in 1/sr.
+
+    Index-matched, the closed-form first order (and the base seen through
+    the layers, docs/model.md section 4). Under a top interface, its outside
+    reflection ``f_s`` (docs/model.md section 3a), the sharpest part of a
+    glossy product; the rest, the light that crossed the interface, is
+    tabulated. ``wi`` ``(I, 3)``, ``wo`` ``(I or 1, J, 3)``.
+    """
+    top = material.interface
+    if top is None:
+        return single_scattering(stack_medium(material), material.base_albedo, wi, wo)
+    f_s = interface_reflection(wi[:, None, :], wo, top.eta, top.alpha_s)
+    return jnp.broadcast_to(f_s[..., None], f_s.shape + (3,))
 
 
 @eqx.filter_jit
@@ -293,7 +310,7 @@ def _table(material, key, theta_deg, phi_i_deg, phi_o_deg, walks, bounces):
     t, p = jnp.meshgrid(th, jnp.deg2rad(phi_o_deg), indexing="ij")
     wo = jnp.stack([jnp.sin(t) * jnp.cos(p), jnp.sin(t) * jnp.sin(p), jnp.cos(t)], axis=-1).reshape(-1, 3)
     n_out = wo.shape[0]
-    first = jax.vmap(lambda w: single_scattering(stack_medium(material), material.base_albedo, w[None], wo[None])[0])
+    first = jax.vmap(lambda w: exact_part(material, w[None], wo[None])[0])
 
     def incidence(w):  # one key for every incidence: common random numbers over the grid
         query = Query(w[None], wo[None], jnp.zeros(n_out, jnp.int32), jnp.arange(n_out))
@@ -465,7 +482,7 @@ def _check_albedo(base_albedo, what="base_albedo"):
 
 def on_base(material, base_albedo=SKIN_ALBEDO):
     """``material`` with its base replaced by a Lambertian one of albedo ``base_albedo`` (linear sRGB)."""
-    return Material(layers=material.layers, base_albedo=_check_albedo(base_albedo), variant=material.variant)
+    return dataclasses.replace(material, base_albedo=_check_albedo(base_albedo))
 
 
 def render(material, *, key, size=256, base_albedo=SKIN_ALBEDO, walks=RENDER_WALKS, bounces=RENDER_BOUNCES,

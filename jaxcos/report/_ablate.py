@@ -135,9 +135,9 @@ def _fits_json(result):
     for (i, variant), r in result.fits.items():
         entry = out.setdefault(result.names[i], {})
         if isinstance(r.material, Material):
-            entry[variant] = {**material_to_dict(r.material), "fit": r.record}
+            entry[variant] = {**material_to_dict(r.material), "fit": r.record.to_json()}
         else:
-            entry[variant] = {"parameters": r.record["parameters"], "fit": r.record}
+            entry[variant] = {"parameters": r.record.parameters, "fit": r.record.to_json()}
     return json.dumps(out, indent=1, default=float) + "\n"
 
 

@@ -150,6 +150,16 @@ def _unweighted_lines(meas, model):
     return ["", "## Where the loss comes from", "", text]
 
 
+def _weighting(meas):
+    """One sentence: how the points were weighed (std columns, a ``--noise`` model, or none: plain L2)."""
+    if meas.std is None:
+        return "Weights: none (the file has no std columns): the fit minimises the plain L2."
+    if "noise" in meas.metadata:
+        return (f"Weights: the noise model std = {meas.metadata['noise']} (`--noise`; the file has no std "
+                "columns).")
+    return "Weights: the file's std columns."
+
+
 def fit_report(result, meas):
     """The human-readable ``report.md`` of a :class:`~jaxcos.FitResult`."""
     r = result.record
@@ -159,6 +169,8 @@ def fit_report(result, meas):
         "",
         f"Variant `{r.variant}`, method `{r.method}`, {r.n_points} points x 3 channels, "
         f"{r.n_params} fitted parameters ({', '.join(r.fitted)}), seed {r.seed}.",
+        "",
+        _weighting(meas),
         "",
         "## Quality",
         "",
@@ -192,6 +204,12 @@ def fit_report(result, meas):
         lines.append(f"| `{key}` | {_fmt(value)}{mark} |")
     if "phi_p_deg" not in layer:
         lines.append(f"| `phi_p_deg` | 0{'' if 'phi_p' in r.fitted else ' (fixed: tilt in the plane of incidence)'} |")
+    top = result.material.interface
+    if top is None:
+        lines.append("| top interface | none: index-matched (docs/model.md section 3) |")
+    else:
+        lines += [f"| `interface.eta` (top interface, docs/model.md section 3a) | {_fmt(float(top.eta))} |",
+                  f"| `interface.alpha_s` | {_fmt(float(top.alpha_s))} |"]
     lines += [
         "",
         "## Starts",

@@ -214,7 +214,7 @@ def write_uncertainty(post, meas, out_dir, *, force=False):
                          acceptance_fraction=post.record["acceptance_fraction"], converged=c.converged,
                          required_chain_in_tau=CHAIN_TAUS),
         record=post.record,
-        fit=post.fit.record,
+        fit=post.fit.record.to_json(),
     )
     with staged_outputs(out_dir, UNCERTAINTY_FILES, force) as tmp:
         with open(os.path.join(tmp, "posterior.json"), "w", encoding="utf-8") as fh:
