@@ -9,6 +9,7 @@ from ._fit import (
     FinalStep,
     FitRecord,
     FitResult,
+    FitSummary,
     fit,
     make_problem,
     parameterization,

@@ -116,9 +116,14 @@ NARROW_RATIO = 1.5
 """A highlight is narrower than the angular sampling (:func:`narrow_highlight`) when, in the median
 over incidences, its brightest point exceeds both neighbours by more than this factor (docs/method.md,
 "Near-mirror highlights")."""
-# TEMPORARY until jaxcos.model.FIXED holds it: a single-lobe fit has always written g2 = 0, the lobe
-# it does not simulate (FIXED["single_lobe"] fixes w_g alone). Delete once FIXED gains "g2": 0.0.
-_FIXED_PENDING = {"single_lobe": {"g2": 0.0}}
+# Key streams: fold_in(key, stream) of the fit's key, one per stage that needs walks independent of the
+# objective's (which uses the key itself).
+CHECK_STREAM = 1
+"""The checks of the refined starts (:func:`select`)."""
+SCREEN_STREAM = 2
+"""The screen's batches (:func:`screen`)."""
+POLISH_STREAM = 3
+"""The check of the Gauss-Newton step (:func:`polish`)."""
 _EPS = 1e-5
 _G_MAX = 0.9999  # |g| = 1 is a delta function: the map keeps float32 iterates off it
 _ALPHA_MIN = 1e-4  # alpha_p = 0 is a mirror with no width
@@ -168,7 +173,7 @@ _TRANSFORMS = {name: _transforms(*entry) for name, entry in _RANGES.items()}
 
 def fixed_values(variant):
     """The values ``variant`` fixes (``jaxcos.model.FIXED``), as a fit writes them."""
-    return {**FIXED[variant], **_FIXED_PENDING.get(variant, {})}
+    return dict(FIXED[variant])
 
 
 class Parameterization(eqx.Module):
@@ -869,19 +874,39 @@ class Budget:
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class FitRecord:
-    """What a fit did and how well it fits: the ``"fit"`` record of ``params.json`` (docs/formats.md).
+class FitSummary:
+    """What every fit reports, the Monte Carlo fits (:class:`FitRecord`) and the Kubelka-Munk baseline alike.
 
     Attributes:
         loss: the objective at the fitted material, under the fit's key.
         l2, rmse: the paper's L2 (sum of squared differences) and the RMSE, file's quantity.
         n_points: measured points (each with 3 channels).
-        reduced_chi2: ``loss`` per degree of freedom (weights: the measurement
-            noise and the model's Monte Carlo error), or ``None`` without std columns.
+        reduced_chi2: ``loss`` per degree of freedom, or ``None`` without std columns.
         reduced_chi2_noise_only: the same weighted by the measurement std alone, or ``None``.
         iterations: solver steps of the selected start.
         time_s: wall time of the fit, seconds.
-        method, variant, seed: as given to :func:`fit`.
+        method, variant: the solver and the model variant.
+    """
+
+    loss: float
+    l2: float
+    rmse: float
+    n_points: int
+    reduced_chi2: float | None = None
+    reduced_chi2_noise_only: float | None = None
+    iterations: int
+    time_s: float
+    method: str
+    variant: str
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class FitRecord(FitSummary):
+    """What a fit did and how well it fits: the ``"fit"`` record of ``params.json`` (docs/formats.md).
+
+    Attributes (besides those of :class:`FitSummary`; ``reduced_chi2`` weighs by
+    the measurement noise and the model's Monte Carlo error):
+        seed: as given to :func:`fit`.
         n_evaluations: forward evaluations at the objective's walks over every
             refined start (a Jacobian counts as parameters + 1 forwards at its walks).
         budget: the objective's :class:`Budget`.
@@ -901,16 +926,6 @@ class FitRecord:
         "reduced_chi2 weights residuals by sqrt(std^2 + mc^2), the measurement noise and the model's Monte Carlo "
         "error; reduced_chi2_noise_only by std alone.")
 
-    loss: float
-    l2: float
-    rmse: float
-    n_points: int
-    reduced_chi2: float | None = None
-    reduced_chi2_noise_only: float | None = None
-    iterations: int
-    time_s: float
-    method: str
-    variant: str
     n_evaluations: int
     budget: Budget
     seed: int
@@ -1247,7 +1262,7 @@ def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, sa
         f"{screen_problem.bounces} bounces")
     unscreened = _in_background(refiner, f"{plan.unscreened}, unscreened", plan.x_unscreened)
     try:
-        screened = screen(screen_problem, plan.pool, jax.random.fold_in(key, 2), refine=refine)
+        screened = screen(screen_problem, plan.pool, jax.random.fold_in(key, SCREEN_STREAM), refine=refine)
         say(f"refining the best {len(screened.order)} screened start{'s' * (len(screened.order) > 1)} "
             f"({method}, {PASSES} passes)")
         return [refiner(str(i), screened.ends[i]) for i in screened.order] + [unscreened.result()]
@@ -1419,13 +1434,13 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
 
     say(f"checking {len(refined)} refined start{'s' * (len(refined) > 1)} at {budget.check_walks} walks "
         f"in {CHECK_BATCHES} batches under independent keys")
-    selection = select(refined, meas, jax.random.fold_in(key, 1), budget.check_walks)
+    selection = select(refined, meas, jax.random.fold_in(key, CHECK_STREAM), budget.check_walks)
     best = refined[selection.best]
     if final_step and best.jacobian is not None:
         say(f"taking one Gauss-Newton step on the best check's pooled residuals and checking it at "
             f"{budget.check_walks} walks under fresh keys")
         polished = polish(best, selection.checks[selection.best], selection.pooled[selection.best], meas,
-                          jax.random.fold_in(key, 3), budget.check_walks)
+                          jax.random.fold_in(key, POLISH_STREAM), budget.check_walks)
     else:
         polished = Polished(x=best.x, check=selection.checks[selection.best], step=None)
     return summarise(meas, refined, selection, polished, method=method, variant=variant, seed=seed, budget=budget,

@@ -36,7 +36,7 @@ import optimistix as optx
 
 from .._errors import InputError
 from ..model import KubelkaMunk, directions, km_remission
-from ._fit import fit_statistics
+from ._fit import FitSummary, fit_statistics
 
 KM_PARAMETERS = ("r_inf", "sx", "roughness", "f0")
 """Fitted parameters of the Kubelka-Munk baseline, in the order of ``x``."""
@@ -151,24 +151,14 @@ def km_starts(meas, n, rng):
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class KMFitRecord:
+class KMFitRecord(FitSummary):
     """What a Kubelka-Munk fit did and how well it fits: its ``"fit"`` record (:meth:`to_json`).
 
-    The fields it shares with :class:`jaxcos.inference.FitRecord` (``loss``,
-    ``l2``, ``rmse``, ``n_points``, ``reduced_chi2``,
-    ``reduced_chi2_noise_only``, ``n_params``, ``iterations``, ``time_s``,
-    ``method``, ``variant``, ``seed``, ``fitted``, ``starts_refined``,
-    ``starts_at_optimum``) mean the same, so the ablation reads both fits
-    alike.
+    The fields of :class:`FitSummary` mean what they mean for the Monte Carlo
+    fits, so the ablation reads both fits alike (``reduced_chi2`` and
+    ``reduced_chi2_noise_only`` are equal: the model has no Monte Carlo error).
 
-    Attributes:
-        loss, l2, rmse, n_points, reduced_chi2, reduced_chi2_noise_only: as
-            :func:`jaxcos.inference._fit.fit_statistics` gives them (the reduced
-            chi-squares ``None`` without std columns; the model has no Monte
-            Carlo error, so the two are equal).
-        iterations: Levenberg-Marquardt steps of the best start.
-        time_s: wall time of the fit, seconds.
-        method: ``"lm"``; ``variant``: ``"kubelka_munk"``.
+    Attributes (besides those of :class:`FitSummary`):
         seed: seeds the random starts.
         n_params, fitted: :data:`KM_N_PARAMS` and :data:`KM_PARAMETERS`.
         starts_refined: starts refined (all of them); ``starts_at_optimum``:
@@ -178,14 +168,6 @@ class KMFitRecord:
             ``absorption``, ``r_inf``, RGB lists; ``thickness``, ``roughness``, ``f0``).
     """
 
-    loss: float
-    l2: float
-    rmse: float
-    n_points: int
-    reduced_chi2: float | None = None
-    reduced_chi2_noise_only: float | None = None
-    iterations: int
-    time_s: float
     method: str = "lm"
     variant: str = "kubelka_munk"
     seed: int

@@ -24,7 +24,7 @@ not simulated at all."""
 
 FIXED = {
     "two_lobe": {},
-    "single_lobe": {"w_g": 1.0},
+    "single_lobe": {"w_g": 1.0, "g2": 0.0},  # g2: the lobe it does not simulate, written as 0
     "diffusers_only": {"c_d": 1.0},
     "platelets_only": {"c_d": 0.0},
 }
