@@ -26,6 +26,7 @@ import numpy as np
 
 import jaxcos
 from jaxcos.render import write_png
+from jaxcos.report import loss_split
 
 RAW = {
     "105": "Clarins_105_Nude_coll_norm.txt",
@@ -33,19 +34,15 @@ RAW = {
 }
 SCORE_WALKS = 8192
 SCORE_KEY = 12345  # independent of every fit's key
-BODY_QUANTILE = 0.9  # the points outside the brightest tenth are the body
 
 
 def score(material, meas):
-    """L2 at :data:`SCORE_WALKS` walks under an independent key, and the body's median relative miss."""
+    """L2 at :data:`SCORE_WALKS` walks under an independent key, and the body's median relative miss
+    (:func:`jaxcos.report.loss_split`, as a fit's report gives it)."""
     query = jaxcos.make_query(meas.theta_i, meas.theta_o, meas.phi_o)
     est = jaxcos.simulate(material, query, jax.random.key(SCORE_KEY), walks=SCORE_WALKS, bounces=128)
     model = meas.scale * np.asarray(est.f, float)
-    l2 = float(np.sum((model - meas.values) ** 2))
-    brightness = meas.values.mean(axis=1)
-    body = brightness <= np.quantile(brightness, BODY_QUANTILE)
-    miss = float(np.median(np.abs(model[body] - meas.values[body]) / np.abs(meas.values[body])))
-    return l2, miss
+    return float(np.sum((model - meas.values) ** 2)), loss_split(meas, model).body_miss
 
 
 def main(argv=None):

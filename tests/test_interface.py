@@ -47,6 +47,7 @@ import jaxcos
 from jaxcos import Layer, Material
 from jaxcos.model import Interface
 from jaxcos.model import _interface as I
+from quadrature import half_hemisphere_grid
 
 _PUB = jaxcos.model._material._PUBLISHED
 
@@ -502,17 +503,6 @@ def test_samplers_chi_square():
 # --- shared: walks through a query -----------------------------------------------------------------------
 
 
-def _half_hemisphere_grid(nmu, nphi):
-    """``int f(wo) mu_o dwo`` over a BSDF symmetric under ``y -> -y``: Gauss-Legendre in ``mu``, trapezoid on [0, 180]."""
-    x, w = np.polynomial.legendre.leggauss(nmu)
-    mu, w_mu = (x + 1) / 2, w / 2
-    phi = np.linspace(0.0, 180.0, nphi)
-    w_phi = np.full(nphi, 2 * np.pi / (2 * (nphi - 1)))
-    w_phi[1:-1] *= 2
-    MU, PHI = np.meshgrid(mu, phi, indexing="ij")
-    return np.degrees(np.arccos(MU)).ravel(), PHI.ravel(), np.outer(w_mu * mu, w_phi).ravel()
-
-
 def _with_interface(material, eta, alpha):
     return Material(layers=material.layers, base_albedo=material.base_albedo, variant=material.variant,
                     interface=Interface(eta=eta, alpha_s=alpha))
@@ -527,7 +517,7 @@ _E_WALKS, _E_BOUNCES, _E_REPLICATES = 256, 96, 8
 
 def _energy(material, alpha, lines, failures, t_star, loose=False, reflectance_at_least=None, walks=_E_WALKS):
     """Replicates of ``int f mu_o + shadowed + absorbed_base`` (and its parts) for ``material`` under ``eta = 1.5``."""
-    to, po, weights = _half_hemisphere_grid(_E_NMU, _E_NPHI)
+    to, po, weights = half_hemisphere_grid(_E_NMU, _E_NPHI)
     n_i, n_o = len(_E_TI), len(to)
     query = jaxcos.make_query(np.repeat(_E_TI, n_o), np.tile(to, n_i), np.tile(po, n_i))
     material = _with_interface(material, 1.5, alpha)

@@ -32,6 +32,7 @@ from scipy import stats
 
 import jaxcos
 from jaxcos import Layer, Material
+from quadrature import half_hemisphere_grid
 
 # the published fits as Layer keyword arguments (docs/model.md section 5, paper Table 2)
 _PUB = jaxcos.model._material._PUBLISHED
@@ -200,23 +201,6 @@ _E_WALKS = 256
 _E_REPLICATES = 32
 
 
-def _half_hemisphere_grid(nmu, nphi):
-    """Directions and weights of ``int f(wo) cos(theta_o) dwo`` for a BSDF symmetric under ``y -> -y``.
-
-    Gauss-Legendre in ``mu``; in ``phi``, the trapezoidal rule on ``[0, 180]``
-    degrees (endpoints at half weight), which for an even function of ``phi``
-    is the trapezoidal rule on the full circle with ``2 (nphi - 1)`` nodes
-    (spectrally accurate for smooth periodic integrands).
-    """
-    x, w = np.polynomial.legendre.leggauss(nmu)
-    mu, w_mu = (x + 1) / 2, w / 2
-    phi = np.linspace(0.0, 180.0, nphi)
-    w_phi = np.full(nphi, 2 * np.pi / (2 * (nphi - 1)))
-    w_phi[1:-1] *= 2
-    MU, PHI = np.meshgrid(mu, phi, indexing="ij")
-    return np.degrees(np.arccos(MU)).ravel(), PHI.ravel(), np.outer(w_mu * mu, w_phi).ravel()
-
-
 def _conservative(t, platelets):
     """Albedos 1, black base; moderately rough platelets tilted in the plane of incidence, or diffusers only.
 
@@ -261,11 +245,11 @@ def test_energy_conservation():
     first-order term (the BSDF's sharpest part) against a ``200 x 181`` grid
     with the NumPy reference, and added to the allowance.
     """
-    to, po, weights = _half_hemisphere_grid(_E_NMU, _E_NPHI)
+    to, po, weights = half_hemisphere_grid(_E_NMU, _E_NPHI)
     n_i, n_o = len(_E_TI), len(to)
     grid = jaxcos.make_query(np.repeat(_E_TI, n_o), np.tile(to, n_i), np.tile(po, n_i))
     single = jaxcos.make_query(list(_E_TI), [0.0] * n_i)
-    fine = _half_hemisphere_grid(200, 181)
+    fine = half_hemisphere_grid(200, 181)
     cases = [(t, platelets, "exact") for platelets in (False, True) for t in (0.5, 16.0)]
     cases += [(16.0, False, "mc")]
     n_checks = len(cases) * n_i * 3

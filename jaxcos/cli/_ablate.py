@@ -10,7 +10,7 @@ import os
 from .._errors import refuse_overwrite
 from ..inference import ABLATION_BOUNCES, ABLATION_VARIANTS, ABLATION_WALKS, ablate, check_variants
 from ..report import ABLATION_FILES, write_ablation
-from ._main import progress
+from ._common import progress
 
 
 def _cmd(args):

@@ -13,7 +13,7 @@ under ``--out``). Existing results are refused before anything runs, unless
 import os
 
 from .._errors import refuse_overwrite
-from ._main import progress
+from ._common import progress
 
 
 def _cmd_accuracy(args):

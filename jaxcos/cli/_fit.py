@@ -7,7 +7,7 @@ from ..inference import FIT_BOUNCES, FIT_JACOBIAN_WALKS, FIT_WALKS, fit
 from ..io import load_measurements, load_params
 from ..model import check_variant, resolve_budget
 from ..report import FIT_FILES, write_fit
-from ._main import add_budget, progress
+from ._common import add_budget, progress
 
 
 def _summary(record, out):

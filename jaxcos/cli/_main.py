@@ -10,43 +10,7 @@ import os
 import sys
 
 from .._errors import InputError, refuse_overwrite
-
-
-# --- eval ------------------------------------------------------------------------
-
-
-def _cmd_eval(args):
-    from ._eval import run_eval
-    from ..model import resolve_budget
-
-    args.walks, args.bounces = resolve_budget(args.budget, walks=args.walks, bounces=args.bounces)
-    run_eval(args)
-
-
-def add_budget(p, default):
-    """Add ``--budget NAME`` (a named Monte Carlo budget; ``default``: the name the help gives) to the parser ``p``."""
-    from ..model import BUDGETS
-
-    named = ", ".join(f"{name} ({w} walks x {b} bounces)" for name, (w, b) in BUDGETS.items())
-    p.add_argument("--budget", metavar="NAME", default=None,
-                   help=f"a named Monte Carlo budget: {named}; --walks and --bounces override it (default: {default})")
-
-
-def _add_eval(sub):
-    p = sub.add_parser("eval", help="evaluate the BSDF of a params.json at given angles",
-                       description="Evaluate the BSDF of PARAMS at the theta_i,theta_o[,phi_o] rows of ANGLES.csv; "
-                       "writes OUT.csv with r,g,b and their Monte Carlo standard errors r_std,g_std,b_std.")
-    p.add_argument("params", metavar="PARAMS", help="params.json (docs/formats.md)")
-    p.add_argument("--angles", required=True, metavar="ANGLES.csv", help="CSV with columns theta_i,theta_o[,phi_o] in degrees")
-    p.add_argument("--out", required=True, metavar="OUT.csv")
-    p.add_argument("--walks", type=int, default=None, help="walks per incidence direction (default: the library default)")
-    p.add_argument("--bounces", type=int, default=None, help="bounces per walk (default: the library default)")
-    add_budget(p, "paper")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--quantity", choices=("brdf", "reflectance_factor"), default="brdf",
-                   help="write f (1/sr) or the reflectance factor pi*f")
-    p.add_argument("--force", action="store_true", help="overwrite OUT.csv if it exists")
-    p.set_defaults(func=_cmd_eval)
+from . import _ablate, _bench, _eval, _fit, _posterior, _render
 
 
 # --- import ----------------------------------------------------------------------
@@ -101,41 +65,18 @@ def _add_plot(sub):
 # --- shared by the commands ------------------------------------------------------
 
 
-def progress(command):
-    """A ``progress(message)`` callable printing ``jaxcos COMMAND [elapsed s]: message`` to stderr."""
-    import time
-
-    start = time.perf_counter()
-
-    def say(message):
-        print(f"jaxcos {command} [{time.perf_counter() - start:6.1f} s]: {message}", file=sys.stderr, flush=True)
-
-    return say
-
-
 # --- registry ----------------------------------------------------------------------
-
-def _from(module):
-    """The ``add_command(subparsers)`` of a private module, imported when the parser is built."""
-
-    def add(sub):
-        import importlib
-
-        importlib.import_module(module, __package__).add_command(sub)
-
-    return add
-
 
 # One entry per command, in the order of ``jaxcos --help``.
 _COMMANDS = [
-    _add_eval,
-    _from("._fit"),
+    _eval.add_command,
+    _fit.add_command,
     _add_import,
     _add_plot,
-    _from("._posterior"),
-    _from("._bench"),
-    _from("._ablate"),
-    _from("._render"),
+    _posterior.add_command,
+    _bench.add_command,
+    _ablate.add_command,
+    _render.add_command,
 ]
 
 

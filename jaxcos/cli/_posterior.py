@@ -8,7 +8,7 @@ from .._errors import InputError, refuse_overwrite
 from ..inference import CHAIN_TAUS, MAX_STEPS, WALKERS, fit, uncertainty
 from ..io import load_measurements, load_params
 from ..report import UNCERTAINTY_FILES, write_uncertainty
-from ._main import progress
+from ._common import progress
 
 
 def start_from_params(meas, path, *, seed=0, progress=None):

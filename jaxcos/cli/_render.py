@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from .._errors import InputError, refuse_overwrite
 from ..io import encode_srgb, load_params
 from ..render import EXPOSURE, RENDER_BOUNCES, RENDER_WALKS, SKIN_ALBEDO, on_base, shade, tabulate, write_png
-from ._main import progress
+from ._common import progress
 
 
 def _parse_rgb(text):

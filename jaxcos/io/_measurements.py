@@ -664,7 +664,4 @@ def write_evaluation(path, theta_i, theta_o, phi_o, values, std, *, quantity, ov
     for k in range(len(theta_i)):
         angles = [theta_i[k], theta_o[k]] + ([phi_o[k]] if with_phi else [])
         lines.append(",".join(f"{a:g}" for a in angles) + "," + ",".join(f"{v:.7g}" for v in (*values[k], *std[k])))
-    tmp = path + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write("\n".join(lines) + "\n")
-    os.replace(tmp, path)
+    _write_atomic(path, "\n".join(lines) + "\n")

@@ -8,6 +8,7 @@ Example::
 """
 
 import os
+from typing import NamedTuple
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -125,13 +126,23 @@ RELATIVE_MISS = 0.25
 """An unweighted fit's report warns when its other points' median relative difference exceeds this."""
 
 
-def _unweighted_lines(meas, model):
-    """Where an unweighted fit's L2 comes from: its brightest points against the rest.
+class LossSplit(NamedTuple):
+    """Where a model's L2 lies: the brightest points (:data:`BRIGHT_FRACTION`) against the rest, the body.
 
-    Without std columns every point counts by its absolute difference, so a
-    few bright highlight points can outweigh the whole diffuse body; these
-    lines say how much, and what to do if the rest matters.
+    Attributes:
+        bright: boolean mask ``(N,)`` of the brightest points by mean value.
+        share: their share of L2.
+        body_miss: the median relative difference between model and
+            measurement over the other points and channels (0 if there are none).
     """
+
+    bright: np.ndarray
+    share: float
+    body_miss: float
+
+
+def loss_split(meas, model):
+    """The :class:`LossSplit` of ``model`` ``(N, 3)``, in the file's quantity, against ``meas``."""
     brightness = meas.values.mean(axis=1)
     n_bright = max(1, int(round(BRIGHT_FRACTION * brightness.size)))
     bright = np.zeros(brightness.size, bool)
@@ -140,6 +151,19 @@ def _unweighted_lines(meas, model):
     share = resid2[bright].sum() / max(resid2.sum(), 1e-300)
     miss = float(np.median(np.abs(model[~bright] - meas.values[~bright])
                            / np.maximum(np.abs(meas.values[~bright]), 1e-30))) if n_bright < bright.size else 0.0
+    return LossSplit(bright, float(share), miss)
+
+
+def _unweighted_lines(meas, model):
+    """Where an unweighted fit's L2 comes from: its brightest points against the rest.
+
+    Without std columns every point counts by its absolute difference, so a
+    few bright highlight points can outweigh the whole diffuse body; these
+    lines say how much, and what to do if the rest matters.
+    """
+    bright, share, miss = loss_split(meas, model)
+    n_bright = int(bright.sum())
+    brightness = meas.values.mean(axis=1)
     text = (f"The file has no std, so the fit minimises the plain L2: every point counts by its absolute difference, "
             f"and the brightest weigh most. The brightest {n_bright} of {bright.size} points (mean value at least "
             f"{brightness[bright].min():.3g}) carry {100 * share:.0f}% of L2; on the other points the fitted values "
