@@ -50,7 +50,7 @@ def coverage(replicates, hi_walks):
         post = jaxcos.uncertainty(data, start, seed=r, walkers=24, max_steps=1000, hi_walks=hi_walks, checks=4,
                                   replicas=12)
         truth = np.asarray(start.param.to_physical(start.param.from_material(TRUTH)), float)
-        row = dict(replicate=r, converged=post.converged, chain_in_tau=post.record["chain_in_tau"],
+        row = dict(replicate=r, converged=post.converged, chain_in_tau=post.record.chain_in_tau,
                    min_ess=float(np.min(post.chain.ess)), in68=[], in95=[], in68_noise_only=[], in68_laplace=[],
                    z=[], z_fit=[], fit=[], median=[])
         for name, value in zip(post.labels, truth):

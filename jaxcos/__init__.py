@@ -48,6 +48,7 @@ from .inference import (
     FitRecord,
     FitResult,
     Posterior,
+    PosteriorRecord,
     ablate,
     fit,
     fit_kubelka_munk,

@@ -1,6 +1,7 @@
 """The ablation: variant structure, padding, statistics, the BIC verdict on synthetic data, the command."""
 
 import csv
+import json
 import os
 
 import jax
@@ -19,6 +20,7 @@ from jaxcos.inference._ablate import (
     n_params,
     pad_measurements,
     start_from_two_lobe,
+    with_interface_variants,
     _common_shape,
 )
 from jaxcos.cli import main
@@ -44,6 +46,8 @@ FULL = jaxcos.Layer(t=16.0, c_d=0.6, albedo_d=(0.8, 0.7, 0.6), g1=0.5, g2=-0.3, 
 def test_parameter_counts():
     for variant, k in COUNTS.items():
         assert n_params(variant) == k
+        if variant != "kubelka_munk":  # the counterpart with a top interface: eta and alpha_s besides
+            assert n_params(variant + "+interface") == k + 2
     for variant in SWITCHED_OFF:
         names = parameterization(variant).names
         assert not set(names) & set(SWITCHED_OFF[variant])
@@ -112,8 +116,11 @@ def test_starts_for_reduced_and_nesting_variants():
 def test_variant_lists():
     assert check_variants("two_lobe, kubelka_munk") == ("two_lobe", "kubelka_munk")
     assert check_variants(["kubelka_munk", "diffusers_only"]) == ("diffusers_only", "kubelka_munk")
+    # each Monte Carlo variant followed by its counterpart with a top interface; Kubelka-Munk has none
+    assert with_interface_variants(("single_lobe", "two_lobe", "kubelka_munk")) == (
+        "single_lobe", "single_lobe+interface", "two_lobe", "two_lobe+interface", "kubelka_munk")
     for bad, message in (("three_lobe", "unknown variant 'three_lobe'"), ("two_lobe,two_lobe", "given twice"),
-                         ("", "no variant")):
+                         ("", "no variant"), ("two_lobe+interface", "--interface")):
         with pytest.raises(jaxcos.InputError, match=message):
             check_variants(bad)
 
@@ -193,14 +200,14 @@ TWO = jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=0.85, albedo_d=(0.55, 0.5
 N_POINTS = 51
 
 
-def _synthetic(material, path, seed):
+def _synthetic(material, path, seed, walks=4096):
     """Reflectance factors of ``material`` (4096 walks: Monte Carlo error far below the noise) with 3% + 0.005 noise.
 
     Three incidences by seventeen viewing angles.
     """
     ti = np.repeat([10.0, 35.0, 60.0], 17)
     to = np.tile(np.arange(-80.0, 81.0, 10.0), 3)
-    est = jaxcos.simulate(material, jaxcos.make_query(ti, to), jax.random.key(99), walks=4096, bounces=BOUNCES)
+    est = jaxcos.simulate(material, jaxcos.make_query(ti, to), jax.random.key(99), walks=walks, bounces=BOUNCES)
     f = np.pi * np.asarray(est.f, dtype=float)
     std = np.sqrt((0.03 * f) ** 2 + 0.005 ** 2)
     values = f + std * np.random.default_rng(seed).standard_normal(f.shape)
@@ -234,6 +241,48 @@ def test_two_lobe_data_do_prefer_two_lobes(ablation):
     """The same verdict can go the other way: the test above is not passed by construction."""
     single, two = _row(ablation, "two.csv", "single_lobe"), _row(ablation, "two.csv", "two_lobe")
     assert two["bic"] < single["bic"] - 10.0, (single, two)
+
+
+GLOSSY = jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=1.0, albedo_d=(0.6, 0.55, 0.5), g1=0.5, g2=-0.2, w_g=0.7,
+                                              albedo_p=(0.8, 0.8, 0.8), alpha_p=0.3, theta_p=0.0),),
+                         variant="diffusers_only", interface=jaxcos.Interface(eta=1.5, alpha_s=0.12))
+"""Diffusers under a rough dielectric interface: a gloss that grows towards grazing, which no diffuser makes."""
+
+
+@pytest.fixture(scope="module")
+def interface_ablation():
+    """An ablation with ``interface=True`` of one file simulated with an interface, at a small budget.
+
+    Diffusers alone miss the gloss by far (reduced chi-square above 100), so 1024 walks for the data and
+    32 for the fits decide it; the fit with the interface is within about 1.5 of the noise.
+    """
+    data = _synthetic(GLOSSY, "glossy.csv", 5, walks=1024)
+    return jaxcos.ablate([data], variants=("diffusers_only",), walks=32, bounces=16, starts=0, seed=0, interface=True)
+
+
+@pytest.mark.slow
+def test_interface_data_prefer_the_interface(interface_ablation, tmp_path):
+    """Each variant is compared with its counterpart under an interface, by BIC; the written table only grows."""
+    result = interface_ablation
+    assert result.variants == ("diffusers_only", "diffusers_only+interface")
+    plain, top = (_row(result, "glossy.csv", v) for v in result.variants)
+    assert top["n_params"] == plain["n_params"] + 2 == COUNTS["diffusers_only"] + 2
+    assert top["bic"] < plain["bic"] - 100.0, (plain, top)
+    assert top["start"] in ("multi-start", "index-matched fit") and top["walks"] == 32
+    fitted = result.fits[(0, "diffusers_only+interface")].material
+    assert fitted.variant == "diffusers_only" and result.fits[(0, "diffusers_only")].material.interface is None
+    # the interface of the data is found (eta 1.5, alpha_s 0.12), and fits them to about their noise
+    assert abs(float(fitted.interface.eta) - 1.5) < 0.2 and 0.06 < float(fitted.interface.alpha_s) < 0.25
+    assert top["reduced_chi2"] < 3.0 < 100.0 < plain["reduced_chi2"]
+    out = tmp_path / "abl"
+    jaxcos.write_ablation(result, out)
+    with open(out / "ablation.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert tuple(rows[0]) == CSV_COLUMNS and [r["variant"] for r in rows] == list(result.variants)
+    report = (out / "report.md").read_text()
+    assert "## With and without the interface" in report and "`diffusers_only+interface`" in report
+    fits = json.loads((out / "fits.json").read_text())["glossy.csv"]
+    assert "interface" in fits["diffusers_only+interface"] and "interface" not in fits["diffusers_only"]
 
 
 @pytest.mark.slow
@@ -290,10 +339,23 @@ def test_command_writes_the_table_and_refuses_to_overwrite(tmp_path, capsys):
     assert (out / "ablation.csv").read_text().count("\n") == 2
 
 
+def test_interface_flag_leaves_the_baseline_alone(tmp_path, capsys):
+    """Kubelka-Munk has no counterpart under an interface: with --interface its table is the same."""
+    out = tmp_path / "out"
+    assert main(["ablate", str(_csv(tmp_path, "a.csv")), "--out", str(out), "--variants", "kubelka_munk",
+                 "--starts", "1", "--interface"]) == 0
+    assert "x 1 variant(s)" in capsys.readouterr().out
+    table = (out / "ablation.csv").read_text().splitlines()
+    assert table[0] == ",".join(CSV_COLUMNS) and len(table) == 2 and table[1].split(",")[1] == "kubelka_munk"
+    report = (out / "report.md").read_text()
+    assert "+interface" not in report and "## With and without the interface" not in report
+
+
 @pytest.mark.parametrize("args, message", [
     (["--variants", "three_lobe"], "unknown variant 'three_lobe'"),
     (["--walks", "0"], "walks must be a positive integer"),
     (["--exposure", "-1"], "exposure must be a positive number"),
+    (["--variants", "two_lobe+interface"], "--interface"),
 ])
 def test_command_rejects_bad_options(tmp_path, capsys, args, message):
     out = tmp_path / "out"

@@ -20,7 +20,7 @@ from jaxcos.cli import main
 from jaxcos._errors import InputError
 from jaxcos.io import load_measurements
 from jaxcos.inference import FIT_BOUNCES, FIT_WALKS
-from jaxcos.model._walk import BUDGETS, DEFAULT_BOUNCES, DEFAULT_WALKS, resolve_budget
+from jaxcos.model._budget import BUDGETS, DEFAULT_BOUNCES, DEFAULT_WALKS, resolve_budget
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MATTE2 = os.path.join(ROOT, "measurements", "matte2.csv")

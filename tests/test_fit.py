@@ -340,6 +340,52 @@ def test_every_iterate_is_physical():
         assert np.all(np.isfinite(np.asarray(problem.residuals(x))))
 
 
+def test_fit_bounds_and_maps_come_from_the_model_table():
+    """The fit's bounds lie inside each parameter's physical domain, and its map reaches only them."""
+    from jaxcos.model import RANGES
+
+    param = parameterization("two_lobe", fit_t=True, fit_phi=True, interface=True)
+    low, high = param.bounds()
+    bounded = np.array([RANGES[label.split("[")[0]].fit_map != "exp" for label in param.labels()])
+    for x in (jnp.full(param.size, 40.0), jnp.full(param.size, -40.0), jnp.zeros(param.size)):
+        v = np.asarray(param.to_physical(x), float)
+        assert np.all(v >= low - 1e-6) and np.all((v <= high * (1 + 1e-6))[bounded])
+    for name, r in RANGES.items():
+        assert r.fit_map in ("logistic", "loglogistic", "tanh", "exp")
+        for value in (r.fit_low, r.fit_high):
+            assert r.low <= value <= r.high
+        if r.fit_map != "exp":  # exp reaches (0, inf), its high bounds the prior alone
+            assert r.contains((r.fit_low + r.fit_high) / 2)
+
+
+def test_problem_is_a_weighted_least_squares_problem():
+    """Problem's residuals, weigh and loss are the base's, its residuals through the custom JVP."""
+    from jaxcos.inference import WeightedLeastSquares
+
+    param = parameterization("two_lobe")
+    problem = make_problem(_tiny(), param, key=jax.random.key(0), walks=8, bounces=8)
+    assert isinstance(problem, WeightedLeastSquares)
+    x = jnp.zeros(param.size)
+    r = problem.residuals(x)
+    np.testing.assert_allclose(r, (problem.model(x) - problem.measured).reshape(-1) / problem.sigma.reshape(-1),
+                               rtol=1e-5)
+    assert float(problem.loss(x)) == pytest.approx(float(jnp.sum(r * r)), rel=1e-6)
+
+
+def test_fit_budget_builds_on_the_model_budget():
+    from jaxcos.inference import FIT_BOUNCES, FIT_JACOBIAN_WALKS, FIT_WALKS, Budget, FitBudget
+    from jaxcos.model import FIT_BUDGET, PRESETS
+    from jaxcos.model import Budget as MCBudget
+
+    assert Budget is FitBudget and issubclass(FitBudget, MCBudget)
+    b = FitBudget()
+    assert (b.walks, b.bounces, b.jacobian_walks) == (FIT_WALKS, FIT_BOUNCES, FIT_JACOBIAN_WALKS)
+    assert tuple(b) == tuple(FIT_BUDGET) == tuple(PRESETS["accurate"])
+    assert FitBudget.of(64, 32, 4096).jacobian_walks == 64  # held to at most walks
+    with pytest.raises(InputError):
+        FitBudget.of(64, 32, 0)
+
+
 def _tiny():
     ti = np.array([20.0, 20.0, 50.0])
     to = np.array([-10.0, 20.0, 50.0])
@@ -566,3 +612,28 @@ def test_noise_option_weighs_a_file_without_std(tmp_path, capsys):
     assert main(["fit", str(path), "--out", str(tmp_path / "o"), "--noise", "0.05"]) == 2
     assert "std columns" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_fitted_thickness_under_an_interface_holds_the_boundary_probability():
+    """With ``t`` fitted under an interface the boundary probability stays that of the start, and the connection is nee.
+
+    The probability follows ``t`` (:func:`jaxcos.model.boundary_probability`);
+    were it recomputed at every ``t``, the objective under one key would jump
+    where a walk's choice between the boundary and the medium flips.
+    """
+    from jaxcos.model import boundary_probability
+
+    meas = _tiny()
+    param = parameterization("single_lobe", fit_t=True, interface=True)
+    problem = make_problem(meas, param, key=jax.random.key(3), walks=32, bounces=8)
+    assert problem.connection == "nee"
+    p0 = boundary_probability(param.to_material(jnp.zeros(param.size)))
+    np.testing.assert_allclose(float(problem.boundary_prob), float(p0))
+    x = jnp.zeros(param.size).at[param.labels().index("t")].add(1.5)  # t 16 -> 72
+    moved = param.to_material(x)
+    assert float(boundary_probability(moved)) < 0.6 * float(p0)
+    held = jaxcos.simulate(moved, problem.query, problem.key, walks=32, bounces=8, lobe_probs=problem.lobe_probs,
+                           boundary_prob=p0)
+    np.testing.assert_array_equal(np.asarray(problem.estimate(x).f), np.asarray(held.f))
+    with pytest.raises(InputError, match="mis"):
+        make_problem(meas, param, key=jax.random.key(3), connection="mis")

@@ -197,6 +197,20 @@ def test_fit_recovers_the_model_that_made_the_data():
     json.dumps(fit)
 
 
+def test_km_problem_is_a_weighted_least_squares_problem():
+    from jaxcos.inference import WeightedLeastSquares
+
+    ti, to = np.array([10.0, 40.0]), np.array([20.0, -30.0])
+    meas = Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros(2), values=np.full((2, 3), 0.3),
+                        std=np.full((2, 3), 0.02), quantity="reflectance_factor", path="m.csv")
+    problem = make_km_problem(meas)
+    assert isinstance(problem, WeightedLeastSquares)
+    x = km_to_x([0.4, 0.5, 0.6], [3.0, 4.0, 5.0], 0.2, 0.05)
+    expected = (np.asarray(problem.model(x)) - 0.3) / 0.02
+    np.testing.assert_allclose(problem.residuals(x), expected.reshape(-1), rtol=1e-5)
+    assert float(problem.loss(x)) == pytest.approx(float(np.sum(expected ** 2)), rel=1e-5)
+
+
 def test_bad_substrate_is_a_clear_error():
     meas = Measurements(theta_i=np.array([10.0]), theta_o=np.array([20.0]), phi_o=np.zeros(1),
                         values=np.full((1, 3), 0.3), std=None, path="m.csv")

@@ -1,6 +1,7 @@
 """params.json: round trips, validation with one clear sentence, variants; and the eval command."""
 
 import json
+import re
 import warnings
 
 import numpy as np
@@ -106,3 +107,45 @@ def test_eval_refuses_bad_angles_and_writes_nothing(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert str(angles) in err and "line 3" in err and "theta_i = 95" in err and len(err.splitlines()) == 1
     assert not out.exists()
+
+
+def test_params_json_ranges_come_from_the_model_table(tmp_path):
+    """io validates params.json against jaxcos.model's one table of ranges: the ends it states, open or closed."""
+    from jaxcos.model import INTERFACE_RANGES, LAYER_RANGES
+
+    assert LAYER_RANGES["theta_p"].key == "theta_p_deg" and LAYER_RANGES["albedo_d"].size == 3
+    for field, r in LAYER_RANGES.items():
+        if r.kind == "rgb" or r.high == float("inf"):
+            continue
+        for end, is_open in ((r.low, r.low_open), (r.high, r.high_open)):
+            path = _write(tmp_path, {"layers": [{**LAYER, r.key: end}], "base": {"type": "black"}})
+            if is_open:
+                with pytest.raises(jaxcos.InputError, match=r"outside its range " + re.escape(r.interval())):
+                    jaxcos.load_params(path)
+            else:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    jaxcos.load_params(path)
+    for key, r in INTERFACE_RANGES.items():
+        data = {"layers": [LAYER], "base": {"type": "black"}, "interface": {"eta": 1.5, "alpha_s": 0.1, key: r.low}}
+        with pytest.raises(jaxcos.InputError, match=re.escape(r.interval())):
+            jaxcos.load_params(_write(tmp_path, data))
+
+
+def test_budget_table():
+    """One table: the presets, each job's default, and the old names as its aliases."""
+    from jaxcos import model
+    from jaxcos.inference import ABLATION_BOUNCES, ABLATION_WALKS, FIT_BOUNCES, FIT_JACOBIAN_WALKS, FIT_WALKS
+    from jaxcos.inference._posterior import HI_WALKS
+    from jaxcos.render import RENDER_BOUNCES, RENDER_WALKS
+
+    assert model.FIT_BUDGET is model.PRESETS["accurate"] and model.ESTIMATOR_BUDGET is model.PRESETS["paper"]
+    assert model.BUDGETS == {name: (b.walks, b.bounces) for name, b in model.PRESETS.items()}
+    assert (model.DEFAULT_WALKS, model.DEFAULT_BOUNCES) == tuple(model.ESTIMATOR_BUDGET) == (128, 512)
+    assert (FIT_WALKS, FIT_BOUNCES, FIT_JACOBIAN_WALKS) == (1024, 128, 128) == (*model.FIT_BUDGET,
+                                                                                model.FIT_JACOBIAN_WALKS)
+    assert (ABLATION_WALKS, ABLATION_BOUNCES) == tuple(model.ABLATION_BUDGET) == (128, 128)
+    assert (RENDER_WALKS, RENDER_BOUNCES) == tuple(model.RENDER_BUDGET) == (256, 64)
+    assert HI_WALKS == model.POSTERIOR_BUDGET.walks == 8192
+    assert set(model.JOBS) == {"estimator", "fit", "ablation", "render", "posterior"}
+    assert model.resolve_budget(default=model.FIT_BUDGET) == (1024, 128)

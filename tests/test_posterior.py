@@ -3,6 +3,7 @@
 import functools
 import json
 import os
+from types import SimpleNamespace
 
 import jax
 import numpy as np
@@ -12,8 +13,10 @@ from scipy.stats import chi2
 import jaxcos
 from jaxcos.cli import main
 from jaxcos.io._measurements import Measurements
-from jaxcos.inference._posterior import laplace, run_ensemble, sensitivity, uncertainty
+from jaxcos.inference._fit import parameterization
+from jaxcos.inference._posterior import PosteriorRecord, laplace, run_ensemble, sensitivity, uncertainty
 from jaxcos.report import write_uncertainty
+from jaxcos.report._posterior import _corner, _sensitivity_maps
 
 # --- a linear-Gaussian problem whose posterior is known exactly -------------------
 
@@ -132,6 +135,14 @@ def test_posterior_covers_the_truth(small_posterior):
     assert np.all(np.isfinite(post.chain.tau)) and np.all(post.chain.ess > 0)
 
 
+RECORD_KEYS = ("labels", "variant", "n_points", "n_params", "walkers", "steps", "burn", "acceptance_fraction",
+               "acceptance_fraction_min", "chain_in_tau", "converged", "sampling_time_s", "time_s", "seed", "prior",
+               "linear_region", "budget", "noise", "noise_scale", "slope_steps", "chi2_high_budget_at_fit",
+               "chi2_high_budget_at_anchor", "mc_anchor_relative_error", "mc_anchor_error_over_noise",
+               "mc_model_error_over_noise")
+"""The keys of posterior.json's "record", in order, as they were before the record was typed."""
+
+
 @pytest.mark.slow
 def test_write_uncertainty(small_posterior, tmp_path):
     data, post = small_posterior
@@ -142,10 +153,76 @@ def test_write_uncertainty(small_posterior, tmp_path):
     assert set(doc["parameters"]) == set(post.labels)
     assert {"median", "p16", "p84", "p2.5", "p97.5"} <= set(doc["parameters"]["alpha_p"])
     assert doc["diagnostics"]["converged"] == post.converged
+    # the typed record writes the "record" object as the dict it replaced did: the same keys, in order
+    assert isinstance(post.record, PosteriorRecord) and tuple(doc["record"]) == RECORD_KEYS
+    assert doc["record"]["budget"] == {"hi_walks": 1024, "bounces": 48}
+    assert doc["record"]["prior"]["alpha_p"] == list(post.record.prior["alpha_p"])
+    assert doc["record"]["chain_in_tau"] == post.record.chain_in_tau and not post.record.interface
     report = (out / "report.md").read_text()
     assert "autocorrelation" in report and "Laplace" in report
     with pytest.raises(jaxcos.InputError, match="exists"):
         write_uncertainty(post, data, str(out))
+
+
+# --- a fit with a top interface ---------------------------------------------------------
+
+GLOSSY = jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=1.0, albedo_d=(0.85, 0.75, 0.6), g1=0.5, g2=-0.2, w_g=0.7,
+                                              albedo_p=(0.8, 0.8, 0.8), alpha_p=0.3, theta_p=0.0),),
+                         variant="diffusers_only", interface=jaxcos.Interface(eta=1.5, alpha_s=0.15))
+GLOSSY_I = np.repeat([15.0, 45.0, 65.0], 9)
+GLOSSY_O = np.tile([-60.0, -30.0, 0.0, 15.0, 30.0, 45.0, 55.0, 65.0, 75.0], 3)
+
+
+@pytest.fixture(scope="module")
+def interface_posterior():
+    """A short chain on a small diffusers-under-an-interface set (8 parameters).
+
+    The chain starts from the truth standing in for a fit (what :func:`uncertainty` reads of one:
+    ``param``, ``x``, the bounces of its budget, and the record written beside the posterior):
+    compiling a fit of the interface walk would cost more than the rest of the test.
+    """
+    est = jaxcos.simulate(GLOSSY, jaxcos.make_query(GLOSSY_I, GLOSSY_O), jax.random.key(7), walks=256, bounces=16)
+    f = np.pi * np.asarray(est.f, dtype=float)
+    std = np.sqrt((0.03 * f) ** 2 + 0.005 ** 2)
+    data = Measurements(theta_i=GLOSSY_I, theta_o=GLOSSY_O, phi_o=np.zeros_like(GLOSSY_I),
+                        values=f + std * np.random.default_rng(5).standard_normal(f.shape), std=std,
+                        quantity="reflectance_factor", metadata={}, path="glossy.csv")
+    param = parameterization("diffusers_only", interface=True, template=GLOSSY)
+    start = SimpleNamespace(param=param, x=param.from_material(GLOSSY),
+                            record=SimpleNamespace(budget=SimpleNamespace(bounces=16), to_json=lambda: {}))
+    return data, uncertainty(data, start, max_steps=200, hi_walks=256, checks=2, replicas=4)
+
+
+@pytest.mark.slow
+def test_posterior_samples_the_interface(interface_posterior, tmp_path, monkeypatch):
+    """eta and alpha_s are sampled within their ranges and named in the summary, the report and the figures."""
+    import jaxcos.report._posterior as written
+
+    data, post = interface_posterior
+    figures = {}  # the figures write_uncertainty draws, kept to read their labels
+    monkeypatch.setattr(written, "_corner", lambda *a: figures.setdefault("corner", _corner(*a)))
+    monkeypatch.setattr(written, "_sensitivity_maps",
+                        lambda *a: figures.setdefault("sensitivity", _sensitivity_maps(*a)))
+    assert post.labels[-2:] == ["eta", "alpha_s"] and post.record.interface
+    assert post.chain.samples.shape[1] == len(post.labels) == post.record.n_params == 8
+    for name, (low, high) in (("eta", (1.01, 2.5)), ("alpha_s", (0.005, 1.0))):
+        column = post.chain.samples[:, post.labels.index(name)]
+        assert np.all((column >= low) & (column <= high)) and np.std(column) > 0, name
+        s = post.summary[name]
+        assert low <= s["p2.5"] <= s["p16"] <= s["median"] <= s["p84"] <= s["p97.5"] <= high
+        assert post.record.prior[name] == pytest.approx((low, high))
+    out = tmp_path / "post"
+    write_uncertainty(post, data, str(out))
+    doc = json.loads((out / "posterior.json").read_text())
+    assert {"eta", "alpha_s"} <= set(doc["parameters"]) and doc["record"]["labels"][-2:] == ["eta", "alpha_s"]
+    report = (out / "report.md").read_text()
+    assert "top interface" in report and "| `eta` |" in report and "| `alpha_s` |" in report
+    corner = figures["corner"]
+    assert {"eta", "alpha_s"} <= {ax.get_xlabel() for ax in corner.axes} | {ax.get_ylabel() for ax in corner.axes}
+    assert {"eta", "alpha_s"} <= {ax.get_title() for ax in figures["sensitivity"].axes}
+    # too few walkers for the parameters is refused before any work, in one sentence
+    with pytest.raises(jaxcos.InputError, match="at least 2 \\* parameters \\+ 2 = 18"):
+        uncertainty(data, post.fit, walkers=16)
 
 
 def test_cli_bad_inputs(tmp_path, capsys):
@@ -163,17 +240,29 @@ def test_cli_bad_inputs(tmp_path, capsys):
 
 def test_report_says_when_the_chain_reaches_the_edge_of_the_linearisation():
     """A posterior cut by the linearisation's region is told apart from one cut by the prior."""
-    from types import SimpleNamespace
-
     from jaxcos.report._posterior import _laplace_notes
 
     row = dict(p16_noise_only=0.2, p84_noise_only=0.3, laplace_sd=0.05)
     summary = {"inside": dict(row, **{"p2.5": 0.15, "p97.5": 0.35}),
                "at_region": dict(row, **{"p2.5": 0.15, "p97.5": 0.4}),
                "at_prior": dict(row, **{"p2.5": 0.0, "p97.5": 0.35})}
-    record = dict(prior={n: [0.0, 1.0] for n in summary},
-                  linear_region={"inside": [0.0, 0.6], "at_region": [0.0, 0.4], "at_prior": [0.0, 0.6]})
+    record = SimpleNamespace(prior={n: (0.0, 1.0) for n in summary},
+                             linear_region={"inside": (0.0, 0.6), "at_region": (0.0, 0.4), "at_prior": (0.0, 0.6)})
     notes = _laplace_notes(SimpleNamespace(summary=summary, record=record))
     assert len(notes) == 2
     assert notes[0].startswith("`at_region`") and "linearised" in notes[0]
     assert notes[1].startswith("`at_prior`") and "prior" in notes[1]
+
+
+def test_a_chain_that_never_moved_gets_its_length_as_autocorrelation_time():
+    """emcee's estimate is 0/0 for a parameter with no variance; the chain's length stands in, never NaN."""
+    from jaxcos.inference._posterior import _tau
+
+    class Frozen:
+        def get_chain(self, discard=0):
+            chain = np.random.default_rng(0).standard_normal((40, 8, 2))
+            chain[:, :, 1] = 0.5  # a parameter that never moved
+            return chain[discard:]
+
+    tau = _tau(Frozen(), discard=10)
+    assert np.all(np.isfinite(tau)) and tau[1] == 30.0 and tau[0] < 30.0

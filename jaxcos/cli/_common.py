@@ -3,7 +3,7 @@
 import sys
 import time
 
-from ..model import BUDGETS
+from ..model import PRESETS
 
 
 def progress(command):
@@ -18,6 +18,6 @@ def progress(command):
 
 def add_budget(p, default):
     """Add ``--budget NAME`` (a named Monte Carlo budget; ``default``: the name the help gives) to the parser ``p``."""
-    named = ", ".join(f"{name} ({w} walks x {b} bounces)" for name, (w, b) in BUDGETS.items())
+    named = ", ".join(f"{name} ({w} walks x {b} bounces)" for name, (w, b) in PRESETS.items())
     p.add_argument("--budget", metavar="NAME", default=None,
                    help=f"a named Monte Carlo budget: {named}; --walks and --bounces override it (default: {default})")

@@ -15,11 +15,12 @@ import numpy as np
 
 from .._errors import InputError, refuse_overwrite
 from ..io import load_angles, write_evaluation
-from ..model import DEFAULT_BOUNCES, DEFAULT_WALKS, make_query, resolve_budget, simulate
+from ..model import ESTIMATOR_BUDGET, make_query, resolve_budget, simulate
 from ._common import add_budget
 
 
-def evaluate(material, theta_i, theta_o, phi_o, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNCES):
+def evaluate(material, theta_i, theta_o, phi_o, key, *, walks=ESTIMATOR_BUDGET.walks,
+             bounces=ESTIMATOR_BUDGET.bounces):
     """The BSDF (1/sr) and its standard error, ``(N, 3)`` each, at the given angles (degrees)."""
     est = simulate(material, make_query(theta_i, theta_o, phi_o), key, walks=walks, bounces=bounces)
     return np.asarray(est.f, dtype=float), np.asarray(est.stderr, dtype=float)
@@ -36,7 +37,7 @@ def run_eval(args):
     material = load_params(args.params)
     ti, to, po = load_angles(args.angles)
     f, f_std = evaluate(material, ti, to, po, jax.random.key(args.seed),
-                        walks=args.walks or DEFAULT_WALKS, bounces=args.bounces or DEFAULT_BOUNCES)
+                        walks=args.walks or ESTIMATOR_BUDGET.walks, bounces=args.bounces or ESTIMATOR_BUDGET.bounces)
     scale = np.pi if args.quantity == "reflectance_factor" else 1.0
     write_evaluation(args.out, ti, to, po, scale * f, scale * f_std, quantity=args.quantity, overwrite=True)
     print(f"wrote {args.out}: {len(ti)} rows of {args.quantity} with Monte Carlo standard errors.")

@@ -6,11 +6,11 @@ result without ``--force``.
 """
 
 import argparse
-import os
 import sys
 
 from .._errors import InputError, refuse_overwrite
 from . import _ablate, _bench, _eval, _fit, _posterior, _render
+from ._catalogue import compilation_cache_dir, enable_compilation_cache
 
 
 # --- import ----------------------------------------------------------------------
@@ -96,15 +96,8 @@ def _compilation_cache():
 
     A second fit of a file of the same shape then skips most of its compile time.
     """
-    path = os.environ.get("JAXCOS_CACHE")
-    if path is None:
-        root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-        path = os.path.join(root, "jaxcos", "xla")
-    if path:
-        import jax
-
-        jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    # The same folder for the workers of a catalogue (_catalogue.run_task enables it there).
+    enable_compilation_cache(compilation_cache_dir())
 
 
 def main(argv=None):

@@ -18,7 +18,8 @@ import jax.numpy as jnp
 
 from .._errors import InputError, refuse_overwrite
 from ..io import encode_srgb, load_params
-from ..render import EXPOSURE, RENDER_BOUNCES, RENDER_WALKS, SKIN_ALBEDO, on_base, shade, tabulate, write_png
+from ..model import RENDER_BUDGET
+from ..render import EXPOSURE, SKIN_ALBEDO, on_base, shade, tabulate, write_png
 from ._common import progress
 
 
@@ -86,9 +87,10 @@ def add_command(sub):
                    % ",".join(f"{c:g}" for c in SKIN_ALBEDO))
     p.add_argument("--size", type=int, default=256, help="pixels per panel side (default 256)")
     p.add_argument("--seed", type=int, default=0, help="seeds the Monte Carlo key of the BSDF table")
-    p.add_argument("--walks", type=int, default=RENDER_WALKS,
-                   help=f"walks per tabulated incidence (default {RENDER_WALKS})")
-    p.add_argument("--bounces", type=int, default=RENDER_BOUNCES, help=f"bounces per walk (default {RENDER_BOUNCES})")
+    p.add_argument("--walks", type=int, default=RENDER_BUDGET.walks,
+                   help=f"walks per tabulated incidence (default {RENDER_BUDGET.walks})")
+    p.add_argument("--bounces", type=int, default=RENDER_BUDGET.bounces,
+                   help=f"bounces per walk (default {RENDER_BUDGET.bounces})")
     p.add_argument("--exposure", type=float, default=EXPOSURE,
                    help=f"factor on the linear radiance before sRGB encoding (default {EXPOSURE:g})")
     p.add_argument("--thickness", type=float, default=None,

@@ -12,6 +12,7 @@ variant             what it keeps                                               
 ``single_lobe``     diffusers with one lobe (``w_g = 1``) and platelets          10
 ``two_lobe``        the full model                                              12
 ``kubelka_munk``    KM layer on the substrate + Kelemen/Beckmann/Schlick lobe    8
+``V+interface``     ``V`` under a rough top interface (``eta``, ``alpha_s``)      ``V``'s + 2
 ==================  ==========================================================  ==========
 
 Protocol, per file:
@@ -34,6 +35,20 @@ Protocol, per file:
   limit, or in a worse basin): it is refitted from the nested fit
   (:func:`embed`) and the better result kept.
 * ``kubelka_munk`` by :func:`jaxcos.fit_kubelka_munk` (every start refined).
+
+With ``interface=True`` (``jaxcos ablate --interface``) every Monte Carlo
+variant ``V`` also has its counterpart with a rough dielectric top interface
+(docs/model.md section 3a), ``V+interface``: the same layer and ``eta``,
+``alpha_s`` (2 more parameters), listed right after ``V``. An interface with
+``eta`` near 1 is a different model from no interface, not a value of it, so
+the counterpart is not started at ``eta = 1``: after every index-matched
+variant is fitted, each ``V+interface`` is fitted from its own multi-start
+(:func:`jaxcos.fit` with ``interface=True``) and from the index-matched fit of
+``V`` with the default interface start (``eta = 1.5``, ``alpha_s = 0.1``),
+and, for a reduced ``V``, from the ``two_lobe+interface`` fit as above; the
+better by the chi-square is kept, and the nesting rule applies among the
+interface variants as among the others. The Kubelka-Munk baseline has no
+counterpart. AIC and BIC compare all of them alike.
 
 Both fits return results with the same attributes, which is all the
 ablation reads: ``material``, ``model`` and ``model_std`` (``None`` for the
@@ -77,21 +92,21 @@ import numpy as np
 
 from .._errors import InputError
 from ..io import Measurements, load_measurements
-from ..model import with_variant
-from ._fit import FIT_BOUNCES, fit, fit_statistics, parameterization
+from ..model import ABLATION_BUDGET, with_variant
+from ._fit import fit, fit_statistics, parameterization
 from ._kubelka_munk import KM_N_PARAMS, fit_kubelka_munk
 
 ABLATION_VARIANTS = ("diffusers_only", "platelets_only", "single_lobe", "two_lobe", "kubelka_munk")
 """The variants of an ablation, in the order of its table and figure."""
 REDUCED = ("diffusers_only", "platelets_only", "single_lobe")
 """Monte Carlo variants that also start from the two-lobe fit."""
-ABLATION_WALKS = 128
-"""Walks per incidence in an ablation's Monte Carlo fits: a smaller budget than
-the fit's default (:data:`jaxcos.inference.FIT_WALKS`), as an ablation makes
-many fits. The fits weight the larger Monte Carlo error into their objective,
-as :func:`jaxcos.fit` does."""
-ABLATION_BOUNCES = FIT_BOUNCES
-"""Bounces per walk: the fit's default (unfinished energy below 0.4% for the bundled products)."""
+INTERFACE_SUFFIX = "+interface"
+"""Appended to a Monte Carlo variant's name for its counterpart with a top interface (``two_lobe+interface``)."""
+
+ABLATION_WALKS = ABLATION_BUDGET.walks
+"""Walks per incidence in an ablation's Monte Carlo fits (:data:`jaxcos.model.ABLATION_BUDGET`)."""
+ABLATION_BOUNCES = ABLATION_BUDGET.bounces
+"""Bounces per walk in an ablation's Monte Carlo fits (:data:`jaxcos.model.ABLATION_BUDGET`)."""
 CSV_COLUMNS = ("file", "variant", "l2", "rmse", "delta_e2000", "n_params", "aic", "bic", "time_s", "chi2",
                "reduced_chi2", "n_points", "loss", "start", "walks", "bounces", "seed")
 """Keys of each row of an ablation, the columns of ``ablation.csv`` (docs/formats.md requires the first nine)."""
@@ -112,6 +127,9 @@ def check_variants(variants):
     if not variants:
         raise InputError(f"no variant given; choose from {', '.join(ABLATION_VARIANTS)}.")
     for v in variants:
+        if v.endswith(INTERFACE_SUFFIX) and v[:-len(INTERFACE_SUFFIX)] in ABLATION_VARIANTS:
+            raise InputError(f"variant {v!r}: ask for the interface with --interface (interface=True), which adds "
+                             "the counterpart with a top interface of every Monte Carlo variant.")
         if v not in ABLATION_VARIANTS:
             raise InputError(f"unknown variant {v!r}; choose from {', '.join(ABLATION_VARIANTS)}.")
         if variants.count(v) > 1:
@@ -119,8 +137,29 @@ def check_variants(variants):
     return tuple(v for v in ABLATION_VARIANTS if v in variants)
 
 
+def with_interface_variants(variants):
+    """``variants`` with each Monte Carlo variant followed by its counterpart with a top interface.
+
+    ``("single_lobe", "two_lobe", "kubelka_munk")`` becomes ``("single_lobe",
+    "single_lobe+interface", "two_lobe", "two_lobe+interface", "kubelka_munk")``.
+    """
+    return tuple(name for v in variants
+                 for name in ((v,) if v == "kubelka_munk" else (v, v + INTERFACE_SUFFIX)))
+
+
+def split_variant(name):
+    """``(variant, interface)`` of an ablation variant's name: ``"two_lobe+interface"`` gives ``("two_lobe", True)``."""
+    if name.endswith(INTERFACE_SUFFIX):
+        return name[:-len(INTERFACE_SUFFIX)], True
+    return name, False
+
+
 NESTED = {"two_lobe": ("single_lobe", "diffusers_only", "platelets_only"), "single_lobe": ("platelets_only",)}
-"""Variants whose models are special cases of another's (``w_g = 1``, ``c_d = 1``, ``c_d = 0``)."""
+"""Variants whose models are special cases of another's (``w_g = 1``, ``c_d = 1``, ``c_d = 0``).
+
+The same holds among the interface counterparts (``single_lobe+interface`` in
+``two_lobe+interface``, ...); and each ``V+interface`` is started from ``V``'s fit
+with the default interface (module docstring)."""
 
 
 def embed(material, variant, reference):
@@ -152,8 +191,11 @@ def _score(meas, result):
 
 
 def n_params(variant):
-    """Number of fitted parameters of an ablation variant."""
-    return KM_N_PARAMS if variant == "kubelka_munk" else parameterization(variant).size
+    """Number of fitted parameters of an ablation variant (``V+interface``: ``V``'s and ``eta``, ``alpha_s``)."""
+    variant, interface = split_variant(variant)
+    if variant == "kubelka_munk" and not interface:
+        return KM_N_PARAMS
+    return parameterization(variant, interface=interface).size
 
 
 def start_from_two_lobe(material, variant):
@@ -280,8 +322,9 @@ class AblationResult:
         fits: ``{(file index, variant): FitResult or KMFitResult}``, the kept fits (the same attributes).
         measurements: the measurement tables, in order.
         names: the file names used in the table.
-        variants: the variants fitted, in table order.
-        settings: budget, seed, starts, exposure, padding and total time.
+        variants: the variants fitted, in table order (with ``interface``, each Monte
+            Carlo variant followed by its ``+interface`` counterpart).
+        settings: budget, seed, starts, exposure, interface, padding and total time.
     """
 
     rows: list
@@ -323,7 +366,7 @@ def _real(result, meas):
 
 
 def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLATION_WALKS, bounces=ABLATION_BOUNCES,
-           starts=15, refine=1, reduced_refine=1, exposure=1.0, share_compiled=True, progress=None):
+           starts=15, refine=1, reduced_refine=1, exposure=1.0, interface=False, share_compiled=True, progress=None):
     """Fit every variant on every file and compare them (module docstring).
 
     Args:
@@ -337,6 +380,8 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
         reduced_refine: screened starts refined for each reduced variant's own
             multi-start (the start from the two-lobe fit is refined besides).
         exposure: scale of the reflectance factors before the CIEDE2000 colours.
+        interface: also fit each Monte Carlo variant with a rough dielectric top
+            interface (``V+interface``, 2 more parameters; module docstring).
         share_compiled: pad files with std columns to a common shape so that
             their fits share compiled code.
         progress: a callable ``progress(message)`` (default: none).
@@ -355,6 +400,10 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
         raise InputError(f"starts must be a non-negative integer, not {starts}.")
     if not (isinstance(exposure, (int, float)) and math.isfinite(exposure) and exposure > 0):
         raise InputError(f"exposure must be a positive number, not {exposure}.")
+    if not isinstance(interface, (bool, np.bool_)):
+        raise InputError(f"interface must be True or False, not {interface!r}.")
+    interface = bool(interface)
+    table = with_interface_variants(variants) if interface else variants
     items = list(measurements_list) if not isinstance(measurements_list, (str, os.PathLike)) else [measurements_list]
     if not items:
         raise InputError("no measurement file given.")
@@ -383,33 +432,40 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
         base = os.path.basename(name)
         kept, times = {}, {}  # variant -> (score, start label, result); variant -> seconds
 
-        def attempt(variant, label, **options):
-            tell = lambda msg: say(f"{base} {variant}: {msg}")
+        def attempt(entry, label, **options):
+            tell = lambda msg: say(f"{base} {entry}: {msg}")
             tell(f"fitting from the {label}")
             t0 = time.perf_counter()
-            r = _real(fit(padded[index], variant=variant, progress=tell, **budget, **options), meas)
-            times[variant] = times.get(variant, 0.0) + time.perf_counter() - t0
+            variant, top = split_variant(entry)
+            r = _real(fit(padded[index], variant=variant, interface=top, progress=tell, **budget, **options), meas)
+            times[entry] = times.get(entry, 0.0) + time.perf_counter() - t0
             score = _score(meas, r)
-            if variant not in kept or score < kept[variant][0]:
-                kept[variant] = (score, label, r)
+            if entry not in kept or score < kept[entry][0]:
+                kept[entry] = (score, label, r)
 
-        for variant in [v for v in ("two_lobe",) + REDUCED if v in variants]:
-            multi = dict(starts=starts, refine=refine if variant == "two_lobe" else reduced_refine)
-            attempt(variant, "multi-start", **multi)
-            if variant in REDUCED and "two_lobe" in kept:
-                attempt(variant, "two-lobe fit", start=start_from_two_lobe(kept["two_lobe"][2].material, variant))
-        for outer in ("single_lobe", "two_lobe"):
-            for inner in NESTED.get(outer, ()):
-                if outer in kept and inner in kept and kept[inner][0] < kept[outer][0]:
-                    say(f"{base} {outer}: the nested {inner} fits better; refitting {outer} from it")
-                    attempt(outer, f"{inner} fit", start=embed(kept[inner][2].material, outer, kept[outer][2].material))
+        # the index-matched variants, then (interface=True) their counterparts with a top interface
+        for suffix in ("", INTERFACE_SUFFIX) if interface else ("",):
+            for variant in [v for v in ("two_lobe",) + REDUCED if v in variants]:
+                multi = dict(starts=starts, refine=refine if variant == "two_lobe" else reduced_refine)
+                attempt(variant + suffix, "multi-start", **multi)
+                if suffix:  # the index-matched fit with the default interface (fit's start for a missing one)
+                    attempt(variant + suffix, "index-matched fit", start=kept[variant][2].material)
+                if variant in REDUCED and "two_lobe" + suffix in kept:
+                    attempt(variant + suffix, "two-lobe fit",
+                            start=start_from_two_lobe(kept["two_lobe" + suffix][2].material, variant))
+            for outer in ("single_lobe", "two_lobe"):
+                for inner in NESTED.get(outer, ()):
+                    o, i = outer + suffix, inner + suffix
+                    if o in kept and i in kept and kept[i][0] < kept[o][0]:
+                        say(f"{base} {o}: the nested {i} fits better; refitting {o} from it")
+                        attempt(o, f"{i} fit", start=embed(kept[i][2].material, outer, kept[o][2].material))
         if "kubelka_munk" in variants:
             t0 = time.perf_counter()
             r = _real(fit_kubelka_munk(padded[index], seed=seed, starts=starts,
                                        progress=lambda msg: say(f"{base} kubelka_munk: {msg}")), meas)
             times["kubelka_munk"] = time.perf_counter() - t0
             kept["kubelka_munk"] = (_score(meas, r), "multi-start", r)
-        for variant in variants:
+        for variant in table:
             _, label, result = kept[variant]
             record = result.record
             chi2, aic, bic = information_criteria(meas, result.model, record.n_params)
@@ -425,7 +481,8 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
             fits[(index, variant)] = result
             say(f"{base} {variant}: L2 {record.l2:.4g}, BIC {bic:.1f} ({times[variant]:.1f} s, kept the {label})")
     settings = dict(seed=int(seed), walks=int(walks), bounces=int(bounces), starts=int(starts), refine=int(refine),
-                    reduced_refine=int(reduced_refine), exposure=float(exposure), padded_shape=shape,
-                    total_time_s=round(time.perf_counter() - t_start, 1), load_average=(load_start, _load_average()))
-    return AblationResult(rows=rows, fits=fits, measurements=measurements, names=names, variants=variants,
+                    reduced_refine=int(reduced_refine), exposure=float(exposure), interface=interface,
+                    padded_shape=shape, total_time_s=round(time.perf_counter() - t_start, 1),
+                    load_average=(load_start, _load_average()))
+    return AblationResult(rows=rows, fits=fits, measurements=measurements, names=names, variants=table,
                           settings=settings)

@@ -23,9 +23,10 @@ Why each stage is there, with the measurements that decided it:
 docs/method.md.
 
 Parameters are mapped to unbounded coordinates so every iterate is physical
-(:data:`_RANGES`): ``c_d``, ``w_g``, the albedos, ``alpha_p`` and ``theta_p``
-(degrees) by a logistic function onto their range, ``g1``, ``g2`` and
-``phi_p`` (degrees) by a scaled ``tanh``, ``t`` by ``exp``.
+(the fit's maps and bounds of :data:`jaxcos.model.RANGES`): ``c_d``, ``w_g``,
+the albedos, ``alpha_p``, ``theta_p`` (degrees) and ``eta`` by a logistic
+function onto their bounds, ``alpha_s`` by a log-logistic one, ``g1``, ``g2``
+and ``phi_p`` (degrees) by a scaled ``tanh``, ``t`` by ``exp``.
 
 Example::
 
@@ -35,6 +36,7 @@ Example::
     result.material, result.record.check.reduced_chi2
 """
 
+import abc
 import concurrent.futures
 import dataclasses
 import threading
@@ -49,23 +51,14 @@ import numpy as np
 import optimistix as optx
 
 from .._errors import InputError
-from ..model import FIXED, Interface, Layer, Material, check_variant
-from ..model import lobe_probabilities, make_query, simulate
+from ..model import FIT_BUDGET, FIT_JACOBIAN_WALKS, FIXED, RANGES, Interface, Layer, Material, check_variant
+from ..model import Budget as _MCBudget
+from ..model import boundary_probability, lobe_probabilities, make_query, simulate
 
-FIT_WALKS = 1024
-"""Walks per incidence direction of the objective's value in a fit (the
-``accurate`` budget). Under one fixed key a fit follows the Monte Carlo error
-of its estimate, which is correlated across the outgoing angles of an
-incidence and looks like a change of the parameters; the fit puts the
-remaining error into the likelihood (:func:`with_mc_error`) and reports it
-(docs/method.md, "The fit's objective")."""
-FIT_JACOBIAN_WALKS = 128
-"""Walks of the objective's Jacobian: the first 128 of the objective's own
-walks (same key). Levenberg-Marquardt needs a good descent direction, not an
-exact slope; its steps are accepted on the value (docs/method.md)."""
-FIT_BOUNCES = 128
-"""Bounces per walk in a fit; every fit reports the energy its walks left
-unfinished (docs/method.md, "Monte Carlo budget")."""
+FIT_WALKS = FIT_BUDGET.walks
+"""Walks per incidence direction of the objective's value in a fit (:data:`jaxcos.model.FIT_BUDGET`)."""
+FIT_BOUNCES = FIT_BUDGET.bounces
+"""Bounces per walk in a fit (:data:`jaxcos.model.FIT_BUDGET`)."""
 
 PASSES = 2
 """Solver passes per refined start. A pass holds the lobe-selection
@@ -95,14 +88,13 @@ the material's chi-square and its standard error (:func:`_pair_chi2`)."""
 METHODS = ("lm", "powell")
 """The solvers of :func:`fit`: Levenberg-Marquardt (optimistix) and SciPy's modified Powell (the paper's)."""
 
-# Free parameters of each variant, in order; sizes follow.
+# Free parameters of each variant, in order (their sizes: jaxcos.model.RANGES).
 _FREE = {
     "two_lobe": ("c_d", "albedo_d", "g1", "g2", "w_g", "albedo_p", "alpha_p", "theta_p"),
     "single_lobe": ("c_d", "albedo_d", "g1", "albedo_p", "alpha_p", "theta_p"),
     "diffusers_only": ("albedo_d", "g1", "g2", "w_g"),
     "platelets_only": ("albedo_p", "alpha_p", "theta_p"),
 }
-_SIZE = {"albedo_d": 3, "albedo_p": 3}
 
 # Default values of the parameters a variant does not fit, and the default start.
 _DEFAULT = dict(t=16.0, c_d=0.7, albedo_d=(0.8, 0.8, 0.8), g1=0.5, g2=-0.2, w_g=0.7,
@@ -125,27 +117,11 @@ SCREEN_STREAM = 2
 POLISH_STREAM = 3
 """The check of the Gauss-Newton step (:func:`polish`)."""
 _EPS = 1e-5
-_G_MAX = 0.9999  # |g| = 1 is a delta function: the map keeps float32 iterates off it
-_ALPHA_MIN = 1e-4  # alpha_p = 0 is a mirror with no width
 INTERFACE_NAMES = ("eta", "alpha_s")
 """The parameters of a top interface (docs/model.md section 3a), fitted with ``interface=True``."""
 # The start of a fitted interface: a varnish-like index and a moderately rough surface.
 _INTERFACE_DEFAULT = dict(eta=1.5, alpha_s=0.1)
 
-_RANGES = {
-    # name: (map, low, high). The physical range of a fitted parameter, the support of a uniform prior
-    # (Parameterization.bounds), and how its unbounded coordinate x reaches it: "logistic",
-    # low + (high - low) sigmoid(x); "tanh", high tanh(x) (low = -high); "exp", exp(x) onto (0, inf),
-    # ``high`` bounding the prior alone. theta_p and phi_p in degrees (docs/model.md section 2).
-    "c_d": ("logistic", 0.0, 1.0), "w_g": ("logistic", 0.0, 1.0),
-    "albedo_d": ("logistic", 0.0, 1.0), "albedo_p": ("logistic", 0.0, 1.0),
-    "alpha_p": ("logistic", _ALPHA_MIN, 1.0), "theta_p": ("logistic", 0.0, 90.0),
-    "g1": ("tanh", -_G_MAX, _G_MAX), "g2": ("tanh", -_G_MAX, _G_MAX), "phi_p": ("tanh", -180.0, 180.0),
-    "t": ("exp", 0.0, 1e3),
-    # the top interface: eta = 1 is no interface (a variant, never a value); alpha_s log-logistic,
-    # low (high / low)^sigmoid(x), since gloss spans decades of roughness
-    "eta": ("logistic", 1.01, 2.5), "alpha_s": ("loglogistic", 0.005, 1.0),
-}
 
 
 def _unit_to_x(v):
@@ -154,7 +130,10 @@ def _unit_to_x(v):
 
 
 def _transforms(kind, low, high):
-    """``(x -> value, value -> x)`` of a :data:`_RANGES` entry; the inverse works in the value's own dtype."""
+    """``(x -> value, value -> x)`` of a fit map ``kind`` onto ``[low, high]`` (:mod:`jaxcos.model`'s ``RANGES``).
+
+    The inverse works in the value's own dtype.
+    """
     if kind == "logistic":
         return (lambda x: low + (high - low) * jax.nn.sigmoid(x),
                 lambda v: _unit_to_x((np.asarray(v) - low) / (high - low)))
@@ -168,7 +147,7 @@ def _transforms(kind, low, high):
     return jnp.exp, lambda v: np.log(np.maximum(v, _EPS))
 
 
-_TRANSFORMS = {name: _transforms(*entry) for name, entry in _RANGES.items()}
+_TRANSFORMS = {name: _transforms(r.fit_map, r.fit_low, r.fit_high) for name, r in RANGES.items()}
 
 
 def fixed_values(variant):
@@ -198,19 +177,19 @@ class Parameterization(eqx.Module):
 
     @property
     def size(self):
-        return sum(_SIZE.get(n, 1) for n in self.names)
+        return sum(RANGES[n].size for n in self.names)
 
     def labels(self):
         """One label per entry of ``x``, e.g. ``albedo_d[0]``."""
         out = []
         for n in self.names:
-            out += [f"{n}[{i}]" for i in range(_SIZE[n])] if n in _SIZE else [n]
+            out += [f"{n}[{i}]" for i in range(RANGES[n].size)] if RANGES[n].size > 1 else [n]
         return out
 
     def _split(self, v):
         i = 0
         for n in self.names:
-            k = _SIZE.get(n, 1)
+            k = RANGES[n].size
             yield n, v[i:i + k]
             i += k
 
@@ -245,7 +224,7 @@ class Parameterization(eqx.Module):
         """
         seeds, column, channel = [], [], []
         for n in self.names:
-            k, j = _SIZE.get(n, 1), len(column)
+            k, j = RANGES[n].size, len(column)
             seed = np.zeros(self.size)
             seed[j:j + k] = 1.0
             column += [len(seeds)] * k
@@ -254,9 +233,10 @@ class Parameterization(eqx.Module):
         return np.array(seeds), np.array(column), np.array(channel)
 
     def bounds(self):
-        """``(low, high)``: the physical range of each :meth:`labels` entry, the support of a uniform prior."""
-        lows, highs = zip(*[_RANGES[n][1:] for n in self.names for _ in range(_SIZE.get(n, 1))])
-        return np.array(lows), np.array(highs)
+        """``(low, high)``: the fit's bounds of each :meth:`labels` entry (``jaxcos.model.RANGES``), the support of
+        a uniform prior."""
+        ranges = [RANGES[n] for n in self.names for _ in range(RANGES[n].size)]
+        return np.array([r.fit_low for r in ranges]), np.array([r.fit_high for r in ranges])
 
     def from_material(self, material):
         """The unbounded coordinates of ``material``; without an interface, a fitted one starts at its default."""
@@ -290,13 +270,46 @@ def parameterization(variant="two_lobe", *, fit_t=False, fit_phi=False, interfac
 # --- the objective ----------------------------------------------------------------
 
 
-class Problem(eqx.Module):
+class WeightedLeastSquares(eqx.Module):
+    """A weighted least-squares problem: residuals ``(model(x) - measured) / sigma``, flattened.
+
+    The base of every fit's problem, the Monte Carlo one (:class:`Problem`)
+    and the Kubelka-Munk baseline's (``KMProblem``). A subclass declares the
+    fields ``measured`` ``(N, 3)`` (in the file's quantity, docs/formats.md),
+    ``sigma`` ``(N, 3)`` (the file's std, 1 without std columns) and ``scale``
+    (static: the file's quantity per unit BSDF,
+    :attr:`jaxcos.io.Measurements.scale`), and gives :meth:`model`.
+    """
+
+    measured: eqx.AbstractVar[jnp.ndarray]
+    sigma: eqx.AbstractVar[jnp.ndarray]
+    scale: eqx.AbstractVar[float]
+
+    @abc.abstractmethod
+    def model(self, x):
+        """The model at ``x`` in the file's quantity, ``(N, 3)``."""
+
+    def weigh(self, model):
+        """The residuals ``(model - measured) / std`` of a model ``(N, 3)`` in the file's quantity, flattened."""
+        return ((model - self.measured) / self.sigma).reshape(-1)
+
+    def residuals(self, x):
+        """The residuals at ``x``, flattened over points and channels (colour channel last)."""
+        return self.weigh(self.model(x))
+
+    def loss(self, x):
+        """The sum of squared residuals at ``x``."""
+        r = self.residuals(x)
+        return jnp.sum(r * r)
+
+
+class Problem(WeightedLeastSquares):
     """Everything the residuals need: the data, the query, the budget, the key.
 
     ``residuals(x)`` are ``(model - measured) / std``, flattened over points
-    and channels; ``model`` is in the file's quantity (``scale`` times the
+    and channels (:class:`WeightedLeastSquares`); ``model`` is in the file's quantity (``scale`` times the
     BSDF, :attr:`jaxcos.io.Measurements.scale`). Their value uses ``walks`` walks; their
-    Jacobian (forward mode) the first ``jacobian_walks`` of them (all when
+    Jacobian (forward mode, a ``custom_jvp``) the first ``jacobian_walks`` of them (all when
     ``None``).
     """
 
@@ -312,32 +325,26 @@ class Problem(eqx.Module):
     jacobian_walks: int = eqx.field(static=True, default=None)
     incidence_batch: int = eqx.field(static=True, default=None)
     connection: str = eqx.field(static=True, default="nee")
+    boundary_prob: jnp.ndarray = None
 
     def estimate(self, x):
         """The :class:`~jaxcos.Estimate` of the material at ``x`` under this problem's key and budget."""
         return simulate(self.param.to_material(x), self.query, self.key, walks=self.walks,
                         bounces=self.bounces, lobe_probs=self.lobe_probs, incidence_batch=self.incidence_batch,
-                        connection=self.connection)
+                        connection=self.connection, boundary_prob=self.boundary_prob)
 
     def model(self, x):
         """The model in the file's quantity, ``(N, 3)``."""
         return self.scale * self.estimate(x).f
 
     def residuals(self, x):
+        """The residuals at ``x``; their derivative is the Jacobian of the first ``jacobian_walks`` walks."""
         return _residuals(self, x)
-
-    def weigh(self, model):
-        """The residuals ``(model - measured) / std`` of a model ``(N, 3)`` in the file's quantity, flattened."""
-        return ((model - self.measured) / self.sigma).reshape(-1)
-
-    def loss(self, x):
-        r = self.residuals(x)
-        return jnp.sum(r * r)
 
 
 @jax.custom_jvp
 def _residuals(problem, x):
-    return problem.weigh(problem.model(x))
+    return WeightedLeastSquares.residuals(problem, x)
 
 
 def _jacobian_walks(problem):
@@ -388,13 +395,28 @@ def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe
     key at the fit's budget the truth need not be a minimum of the
     objective; ``"mis"`` removes the spikes at a higher cost per evaluation,
     not spent where the highlight is broad (docs/method.md, "Near-mirror
-    highlights").
+    highlights"). Under a top interface the connection is ``"nee"``, the
+    one :func:`~jaxcos.simulate` has there.
+
+    Under a top interface the boundary probability
+    (:func:`~jaxcos.model.boundary_probability`) is held fixed at that of
+    ``reference`` or of the default start, as the lobe probabilities are: with
+    ``t`` fitted it would otherwise follow ``t``, and the objective under one
+    key would jump where a walk's choice between boundary and medium flips.
     """
-    if connection is None:
+    if param.interface:
+        if connection == "mis":
+            raise InputError("the 'mis' connection does not go through a top interface; use 'nee'.")
+        connection = "nee"
+    elif connection is None:
         connection = "mis" if narrow_highlight(meas) else "nee"
     if lobe_probs is None:
         lobe_probs = (lobe_probabilities(reference) if reference is not None
                       else _lobe_probabilities_at(param, jnp.zeros(param.size)))
+    boundary_prob = None
+    if param.interface:
+        boundary_prob = boundary_probability(reference if reference is not None
+                                             else param.to_material(jnp.zeros(param.size)))
     dtype = jnp.result_type(float)
     sigma = np.ones_like(meas.values) if meas.std is None else np.asarray(meas.std)
     if np.any(sigma <= 0):
@@ -411,6 +433,7 @@ def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe
         bounces=bounces,
         jacobian_walks=jacobian_walks,
         connection=connection,
+        boundary_prob=boundary_prob,
     )
 
 
@@ -836,14 +859,17 @@ class FinalStep:
 
 
 @dataclasses.dataclass(frozen=True)
-class Budget:
-    """The Monte Carlo budget of a fit's objective: ``walks`` per incidence, ``bounces`` per walk.
+class FitBudget(_MCBudget):
+    """The Monte Carlo budget of a fit's objective: a :class:`jaxcos.model.Budget` and the Jacobian's walks.
 
-    ``jacobian_walks``: the walks of its Jacobian, the first of the same walks (at most ``walks``).
+    ``walks`` per incidence and ``bounces`` per walk (default
+    :data:`jaxcos.model.FIT_BUDGET`); ``jacobian_walks``: the walks of its
+    Jacobian, the first of the same walks (at most ``walks``). The screen's
+    and the check's budgets derive from it.
     """
 
-    walks: int = FIT_WALKS
-    bounces: int = FIT_BOUNCES
+    walks: int = FIT_BUDGET.walks
+    bounces: int = FIT_BUDGET.bounces
     jacobian_walks: int = FIT_JACOBIAN_WALKS
 
     @classmethod
@@ -871,6 +897,10 @@ class Budget:
     def check_walks(self):
         """The walks of a check (:func:`check`): :data:`CHECK_FACTOR` times ``walks``, in :data:`CHECK_BATCHES` equal batches."""
         return CHECK_BATCHES * -(-CHECK_FACTOR * self.walks // CHECK_BATCHES)
+
+
+Budget = FitBudget
+"""The fit's budget under its former name (:class:`FitBudget`; the plain budget is :class:`jaxcos.model.Budget`)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -1248,12 +1278,56 @@ def screen(problem, pool, key, *, refine):
     return Screened(ends=ends, ranks=ranks, order=[int(i) for i in np.argsort(ranks)[:refine]])
 
 
+def one_lobe(param, x):
+    """``x`` with its two diffuser lobes made one: ``g1 = g2`` at their mean cosine ``w_g g1 + (1 - w_g) g2``.
+
+    ``None`` where ``param`` does not fit both lobes and their weight. A single-lobe
+    material (``w_g = 1``, the bound of ``w_g``'s map) fitted with two lobes can end with two
+    opposed lobes (``g1 = -g2``) of about the right mean cosine, from which
+    Levenberg-Marquardt does not bring them together (docs/method.md, "The search").
+    """
+    if not {"g1", "g2", "w_g"} <= set(param.names):
+        return None
+    labels = param.labels()
+    v = np.asarray(param.to_physical(x), float)
+    i1, i2, iw = labels.index("g1"), labels.index("g2"), labels.index("w_g")
+    v[i1] = v[i2] = v[iw] * v[i1] + (1.0 - v[iw]) * v[i2]
+    return param.from_material(param.physical_to_material(jnp.asarray(v, x.dtype)))
+
+
+def refine_one_lobe(refined, refiner, say):
+    """The refine stage's last move: a refined start with one diffuser lobe, refined where that is better.
+
+    Each refined start is evaluated on its own objective with its lobes made one
+    (:func:`one_lobe`); the one whose loss that lowers most, relative to its
+    own, is refined from there too (:data:`PASSES` passes) and joins the
+    refined starts for :func:`select` to judge (its loss under another start's
+    weights says little about the check). Returns the new
+    :class:`RefinedStart` in a list, or an empty list where no start fits
+    better with one lobe.
+    """
+    gains = []
+    for r in refined:
+        x = one_lobe(r.problem.param, r.x)
+        if x is not None:
+            loss = float(r.problem.loss(x))
+            if np.isfinite(loss) and loss < r.loss:
+                gains.append((loss / r.loss, r, x))
+    if not gains:
+        return []
+    _, start, x = min(gains, key=lambda g: g[0])
+    say(f"refining start {start.label} with one diffuser lobe, where it fits better")
+    return [refiner(f"{start.label}, one lobe", x)]
+
+
 def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, say):
     """The screen and the refinement of its best ``refine`` ends, the plan's unscreened start refined meanwhile.
 
     The unscreened start is refined in a second thread while the screen runs:
     its tracing and compiling, which leave a core idle, overlap the screen's.
-    Returns the :class:`RefinedStart` of each, the screened ones first.
+    Then one of them is refined once more with one diffuser lobe, where that
+    fits better (:func:`refine_one_lobe`). Returns the :class:`RefinedStart`
+    of each, the screened ones first, the one-lobe one last.
     """
     screen_problem = dataclasses.replace(problem, walks=budget.screen_walks, bounces=budget.screen_bounces,
                                          jacobian_walks=None)
@@ -1265,7 +1339,8 @@ def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, sa
         screened = screen(screen_problem, plan.pool, jax.random.fold_in(key, SCREEN_STREAM), refine=refine)
         say(f"refining the best {len(screened.order)} screened start{'s' * (len(screened.order) > 1)} "
             f"({method}, {PASSES} passes)")
-        return [refiner(str(i), screened.ends[i]) for i in screened.order] + [unscreened.result()]
+        refined = [refiner(str(i), screened.ends[i]) for i in screened.order] + [unscreened.result()]
+        return refined + refine_one_lobe(refined, refiner, say)
     finally:
         refiner.stop.set()  # an interrupted fit leaves its background start after the pass it is in
 

@@ -36,7 +36,7 @@ import optimistix as optx
 
 from .._errors import InputError
 from ..model import KubelkaMunk, directions, km_remission
-from ._fit import FitSummary, fit_statistics
+from ._fit import FitSummary, WeightedLeastSquares, fit_statistics
 
 KM_PARAMETERS = ("r_inf", "sx", "roughness", "f0")
 """Fitted parameters of the Kubelka-Munk baseline, in the order of ``x``."""
@@ -81,11 +81,11 @@ def km_labels():
 # --- the fit -----------------------------------------------------------------------------
 
 
-class KMProblem(eqx.Module):
+class KMProblem(WeightedLeastSquares):
     """Least squares of the Kubelka-Munk baseline: residuals ``(model - measured) / std``, flattened.
 
     ``model`` is in the file's quantity (``pi f`` for a reflectance factor);
-    ``std = 1`` when the file has no standard deviations.
+    ``std = 1`` when the file has no standard deviations (:class:`~jaxcos.inference.WeightedLeastSquares`).
     """
 
     wi: jnp.ndarray
@@ -99,14 +99,8 @@ class KMProblem(eqx.Module):
         return km_from_x(x, self.substrate)
 
     def model(self, x):
+        """The model in the file's quantity, ``(N, 3)``."""
         return self.scale * self.material(x).bsdf_directions(self.wi, self.wo)
-
-    def residuals(self, x):
-        return ((self.model(x) - self.measured) / self.sigma).reshape(-1)
-
-    def loss(self, x):
-        r = self.residuals(x)
-        return jnp.sum(r * r)
 
 
 def make_km_problem(meas, substrate=0.0):

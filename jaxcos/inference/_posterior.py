@@ -1,7 +1,8 @@
 """Posterior spreads of fitted parameters: emcee, a Laplace cross-check, and sensitivities.
 
 The posterior of the physical parameters ``v`` (the :meth:`Parameterization.labels`
-entries: ``c_d``, ``albedo_d[0..2]``, ..., ``theta_p`` in degrees) is
+entries: ``c_d``, ``albedo_d[0..2]``, ..., ``theta_p`` in degrees, and ``eta``,
+``alpha_s`` last when the fit has a top interface) is
 
     p(v | y) ∝ U(v; bounds) exp(-1/2 sum ((m(v) - y) / sigma)^2)
 
@@ -64,17 +65,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._errors import InputError
 from ._fit import fit, make_problem
-from ..model import lobe_probabilities, simulate
+from ..model import POSTERIOR_BUDGET, lobe_probabilities, simulate
 
 WALKERS = 32
-"""Ensemble size: more than twice the twelve parameters of the two-lobe model."""
+"""Ensemble size: more than twice the twelve parameters of the two-lobe model (:func:`uncertainty` takes
+``2 P + 2`` for ``P`` parameters where that is more)."""
 MAX_STEPS = 20000
 """The longest chain, in ensemble steps, that :func:`uncertainty` runs by default."""
 CHAIN_TAUS = 50
 """A chain shorter than this many integrated autocorrelation times is reported as too short (emcee's rule)."""
-HI_WALKS = 8192
-"""Walks per incidence of the value ``M_hi(v0)`` and slopes ``J_hi(v0)`` at the anchor (bounces as in the fit)."""
+
+HI_WALKS = POSTERIOR_BUDGET.walks
+"""Walks per incidence of the value ``M_hi(v0)`` and slopes ``J_hi(v0)`` at the anchor (bounces as in the fit;
+:data:`jaxcos.model.POSTERIOR_BUDGET`)."""
 ANCHORS = 3
 """Linearisations made at most: at the fit, then after each Gauss-Newton step towards the last one's optimum
 (kept while the data fit better)."""
@@ -180,16 +185,22 @@ def run_ensemble(log_prob, v0, scale, *, seed=0, walkers=WALKERS, max_steps=MAX_
 
 
 def _tau(sampler, discard=0):
-    """Integrated autocorrelation times; emcee's estimate without its length check (reported instead)."""
+    """Integrated autocorrelation times; emcee's estimate without its length check (reported instead).
+
+    A parameter whose chain has not moved (no variance, where emcee's estimate
+    is 0/0) gets the chain's length: it has not decorrelated at all.
+    """
     chain = sampler.get_chain(discard=discard)
     logger = logging.getLogger("emcee.autocorr")
     level = logger.level
     logger.setLevel(logging.ERROR)  # the length check is reported by the caller, not logged per parameter
     try:
-        return np.array([emcee.autocorr.integrated_time(chain[:, :, i], quiet=True)[0]
-                         for i in range(chain.shape[2])])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tau = np.array([emcee.autocorr.integrated_time(chain[:, :, i], quiet=True)[0]
+                            for i in range(chain.shape[2])])
     finally:
         logger.setLevel(level)
+    return np.where(np.isfinite(tau), tau, float(chain.shape[0]))
 
 
 # --- linearised spreads and sensitivities ------------------------------------------
@@ -239,7 +250,8 @@ def sensitivity(jac, sigma, jac_noise=None):
 def _estimate(problem, v):
     """The estimate at the physical values ``v`` under the key, budget and lobe probabilities of ``problem``."""
     return simulate(problem.param.physical_to_material(v), problem.query, problem.key, walks=problem.walks,
-                    bounces=problem.bounces, lobe_probs=problem.lobe_probs, connection=problem.connection)
+                    bounces=problem.bounces, lobe_probs=problem.lobe_probs, connection=problem.connection,
+                    boundary_prob=problem.boundary_prob)
 
 
 @eqx.filter_jit
@@ -248,11 +260,12 @@ def _batch_estimate(problem, vs):
 
 
 def _first_steps(param, v):
-    """Pilot finite-difference steps: 1% of each parameter's range, 5% of the value for ``alpha_p`` and ``t``."""
+    """Pilot finite-difference steps: 1% of each parameter's range, 5% of the value for ``alpha_p``, ``t`` and
+    ``alpha_s`` (a roughness spans decades)."""
     v = np.asarray(v, float)
     low, high = param.bounds()
     step = 0.01 * (high - low)
-    relative = np.array([label in ("alpha_p", "t") for label in param.labels()])
+    relative = np.array([label in ("alpha_p", "t", "alpha_s") for label in param.labels()])
     step[relative] = 0.05 * np.abs(v[relative])
     return step
 
@@ -540,6 +553,84 @@ def check_model(target, problem, chain, lin, noise, *, key, checks, rng, progres
     return predictive, model_error
 
 
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class PosteriorRecord:
+    """What a run of :func:`uncertainty` did: the ``"record"`` object of ``posterior.json`` (:meth:`to_json`).
+
+    Attributes:
+        labels: the sampled parameters, one per entry of ``v`` (``eta`` and
+            ``alpha_s`` last for a material with a top interface).
+        variant: the model variant.
+        n_points: measured points (3 channels each); ``n_params``: sampled parameters.
+        walkers, steps, burn: the ensemble size, the chain's length and the steps discarded.
+        acceptance_fraction, acceptance_fraction_min: the walkers' mean and lowest.
+        chain_in_tau: the chain's length in its longest autocorrelation time.
+        converged: at least :data:`CHAIN_TAUS` of them.
+        sampling_time_s, time_s: wall time of the sampling and of the whole run, seconds.
+        seed: as given.
+        prior: per label ``(low, high)``, the uniform prior's support.
+        linear_region: per label ``(low, high)``, where the chain may go (:func:`linear_region`).
+        hi_walks, bounces: the budget of the linearisation (``"budget"`` in JSON).
+        noise: which noise the likelihood uses (``"file std columns"`` or
+            ``"estimated from the fit's residuals"``); ``noise_scale``: the estimated level, else ``None``.
+        slope_steps: per label, the central-difference step (:func:`slope_steps`).
+        chi2_high_budget_at_fit, chi2_high_budget_at_anchor: the linearisations' chi-squares.
+        mc_anchor_relative_error: the median relative Monte Carlo error of ``M_hi`` at the anchor.
+        mc_anchor_error_over_noise: that error over the measurement noise (median).
+        mc_model_error_over_noise: the sampled model's RMS error against independent estimates, over the noise.
+    """
+
+    labels: list
+    variant: str
+    n_points: int
+    n_params: int
+    walkers: int
+    steps: int
+    burn: int
+    acceptance_fraction: float
+    acceptance_fraction_min: float
+    chain_in_tau: float
+    converged: bool
+    sampling_time_s: float
+    time_s: float
+    seed: int
+    prior: dict
+    linear_region: dict
+    hi_walks: int
+    bounces: int
+    noise: str
+    noise_scale: float | None
+    slope_steps: dict
+    chi2_high_budget_at_fit: float
+    chi2_high_budget_at_anchor: float
+    mc_anchor_relative_error: float
+    mc_anchor_error_over_noise: float
+    mc_model_error_over_noise: float
+
+    @property
+    def interface(self):
+        """Whether the material has a top interface (its ``eta`` and ``alpha_s`` are then sampled)."""
+        return "eta" in self.labels
+
+    def to_json(self):
+        """The ``"record"`` object of ``posterior.json`` (docs/formats.md), keys in this order."""
+        return dict(
+            labels=list(self.labels), variant=self.variant, n_points=self.n_points, n_params=self.n_params,
+            walkers=self.walkers, steps=self.steps, burn=self.burn, acceptance_fraction=self.acceptance_fraction,
+            acceptance_fraction_min=self.acceptance_fraction_min, chain_in_tau=self.chain_in_tau,
+            converged=self.converged, sampling_time_s=self.sampling_time_s, time_s=self.time_s, seed=self.seed,
+            prior={k: list(v) for k, v in self.prior.items()},
+            linear_region={k: list(v) for k, v in self.linear_region.items()},
+            budget=dict(hi_walks=self.hi_walks, bounces=self.bounces), noise=self.noise,
+            noise_scale=self.noise_scale, slope_steps=dict(self.slope_steps),
+            chi2_high_budget_at_fit=self.chi2_high_budget_at_fit,
+            chi2_high_budget_at_anchor=self.chi2_high_budget_at_anchor,
+            mc_anchor_relative_error=self.mc_anchor_relative_error,
+            mc_anchor_error_over_noise=self.mc_anchor_error_over_noise,
+            mc_model_error_over_noise=self.mc_model_error_over_noise,
+        )
+
+
 @dataclasses.dataclass
 class Posterior:
     """The outcome of :func:`uncertainty`.
@@ -554,7 +645,8 @@ class Posterior:
         chain: the :class:`Chain` with its diagnostics.
         laplace_cov: ``(P, P)`` the Laplace covariance at the anchor.
         sensitivity: ``(P, N, 3)`` ``dv / dy`` at the anchor.
-        record: everything else written to ``posterior.json`` (budgets, noise, Monte Carlo checks).
+        record: a :class:`PosteriorRecord`, everything else written to ``posterior.json``
+            (budgets, noise, Monte Carlo checks; :meth:`PosteriorRecord.to_json`).
         predictive: ``(D, N, 3)`` the model at ``D`` posterior draws.
         fit: the :class:`~jaxcos.FitResult` the chain started from.
     """
@@ -565,7 +657,7 @@ class Posterior:
     chain: Chain
     laplace_cov: np.ndarray
     sensitivity: np.ndarray
-    record: dict
+    record: PosteriorRecord
     predictive: np.ndarray
     fit: object
 
@@ -574,7 +666,7 @@ class Posterior:
         return self.chain.converged
 
 
-def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX_STEPS, hi_walks=HI_WALKS,
+def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_STEPS, hi_walks=HI_WALKS,
                 checks=16, replicas=24, progress=None):
     """Posterior spreads of the parameters of a fit to ``meas``.
 
@@ -583,7 +675,9 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
         fit_result: a :class:`~jaxcos.FitResult` of ``meas`` to start from; by
             default :func:`jaxcos.fit` runs first.
         seed: seeds the Monte Carlo keys and the sampler.
-        walkers, max_steps: the ensemble and the longest chain.
+        walkers, max_steps: the ensemble (by default :data:`WALKERS`, or
+            ``2 P + 2`` for ``P`` parameters where that is more: a two-lobe
+            fit with ``t``, ``phi_p`` and an interface has 16) and the longest chain.
         hi_walks: walks per incidence of the linearisation (bounces as in the fit).
         checks: posterior draws at which the sampled model is compared with
             independent high-budget estimates.
@@ -593,14 +687,24 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=WALKERS, max_steps=MAX
 
     Returns:
         A :class:`Posterior`.
+
+    Raises:
+        InputError: fewer ``walkers`` than ``2 P + 2``.
     """
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     if fit_result is None:
         fit_result = fit(meas, seed=seed, progress=progress)
     param = fit_result.param
-    v0 = np.asarray(param.to_physical(fit_result.x), float)
     low, high = param.bounds()
+    # A float32 fit can sit a rounding below a bound that float32 cannot hold (eta 1.01, alpha_s 0.005): the
+    # chain's walkers start around the anchor, which must lie in the prior's support.
+    v0 = np.clip(np.asarray(param.to_physical(fit_result.x), float), low, high)
+    if walkers is None:
+        walkers = max(WALKERS, 2 * param.size + 2)
+    if walkers < 2 * param.size + 2:
+        raise InputError(f"walkers must be at least 2 * parameters + 2 = {2 * param.size + 2} for the "
+                         f"{param.size} parameters of this fit ({', '.join(param.names)}), not {walkers}.")
     probs = lobe_probabilities(param.physical_to_material(jnp.asarray(v0, jnp.result_type(float))))
     bounces = int(fit_result.record.budget.bounces)
     # (the second key is unused)
@@ -636,16 +740,16 @@ def _record(meas, param, chain, lin, at_fit, *, region, step, noise_scale, hi_wa
     """The :attr:`Posterior.record`: sizes, chain diagnostics, prior and region, budget, noise and Monte Carlo checks."""
     labels = param.labels()
     low, high = param.bounds()
-    return dict(
+    return PosteriorRecord(
         labels=labels, variant=param.variant, n_points=int(meas.values.shape[0]), n_params=int(param.size),
         walkers=int(chain.walkers), steps=int(chain.steps), burn=int(chain.burn),
         acceptance_fraction=float(np.mean(chain.acceptance)),
         acceptance_fraction_min=float(np.min(chain.acceptance)),
         chain_in_tau=float(chain.steps / np.max(chain.tau)), converged=chain.converged,
         sampling_time_s=round(chain.seconds, 2), time_s=round(seconds, 2), seed=int(seed),
-        prior={name: [float(a), float(b)] for name, a, b in zip(labels, low, high)},
-        linear_region={name: [float(a), float(b)] for name, a, b in zip(labels, *region)},
-        budget=dict(hi_walks=int(hi_walks), bounces=bounces),
+        prior={name: (float(a), float(b)) for name, a, b in zip(labels, low, high)},
+        linear_region={name: (float(a), float(b)) for name, a, b in zip(labels, *region)},
+        hi_walks=int(hi_walks), bounces=int(bounces),
         noise="file std columns" if noise_scale is None else "estimated from the fit's residuals",
         noise_scale=noise_scale,
         slope_steps={name: float(h) for name, h in zip(labels, step)},

@@ -16,52 +16,36 @@ import warnings
 import jax.numpy as jnp
 
 from .._errors import InputError
-from ..model import FIXED, VARIANTS, Interface, Layer, Material
+from ..model import BASE_ALBEDO_RANGE, FIXED, INTERFACE_RANGES, LAYER_RANGES, PHI_RANGE, VARIANTS
+from ..model import Interface, Layer, Material
 
-_LAYER_KEYS = {
-    # key in params.json: (field, kind, low, high, low_open, high_open)
-    "t": ("t", "scalar", 0.0, math.inf, False, True),
-    "c_d": ("c_d", "scalar", 0.0, 1.0, False, False),
-    "albedo_d": ("albedo_d", "rgb", 0.0, 1.0, False, False),
-    "g1": ("g1", "scalar", -1.0, 1.0, True, True),
-    "g2": ("g2", "scalar", -1.0, 1.0, True, True),
-    "w_g": ("w_g", "scalar", 0.0, 1.0, False, False),
-    "albedo_p": ("albedo_p", "rgb", 0.0, 1.0, False, False),
-    "alpha_p": ("alpha_p", "scalar", 0.0, 1.0, True, False),
-    "theta_p_deg": ("theta_p", "scalar", 0.0, 90.0, False, False),
-}
-
-
-_INTERFACE_KEYS = {
-    # key in "interface": (kind, low, high, low_open, high_open); eta = 1 is no interface (leave the key out)
-    "eta": ("scalar", 1.0, 3.0, True, False),
-    "alpha_s": ("scalar", 0.0, 1.0, True, False),
-}
+# key in params.json: the field of Layer it sets (the domains: jaxcos.model.LAYER_RANGES)
+_LAYER_KEYS = {r.key: field for field, r in LAYER_RANGES.items()}
 
 TOP_LEVEL_KEYS = ("layers", "base", "variant", "interface", "fit")
 """The keys a ``params.json`` may hold at its top level (docs/formats.md): ``fit`` is the
 record a fit writes (``save_params(..., extra={"fit": ...})``); any other key is an error."""
 
 
-def _number(path, where, key, value, low, high, low_open, high_open):
+def _number(path, where, key, value, domain):
+    """``value`` as a float, checked to be a finite number in ``domain`` (a :class:`jaxcos.model.Range`)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InputError(f"{path}: {where} '{key}' must be a number, not {json.dumps(value)}.")
     if not math.isfinite(value):
         raise InputError(f"{path}: {where} '{key}' must be finite, not {value}.")
-    too_low = value <= low if low_open else value < low
-    too_high = value >= high if high_open else value > high
-    if too_low or too_high:
-        lo, hi = ("(" if low_open else "["), (")" if high_open else "]")
-        raise InputError(f"{path}: {where} '{key}' = {value} is outside its range {lo}{low:g}, {high:g}{hi}.")
+    if not domain.contains(value):
+        raise InputError(f"{path}: {where} '{key}' = {value} is outside its range {domain.interval()}.")
     return float(value)
 
 
-def _value(path, where, key, value, kind, *bounds):
-    if kind == "rgb":
+def _value(path, where, value, domain):
+    """The value of ``domain.key`` (a :class:`jaxcos.model.Range`): one number, or three for an RGB one."""
+    key = domain.key
+    if domain.kind == "rgb":
         if not isinstance(value, list) or len(value) != 3:
             raise InputError(f"{path}: {where} '{key}' must be a list of three numbers [r, g, b].")
-        return [_number(path, where, f"{key}[{i}]", v, *bounds) for i, v in enumerate(value)]
-    return _number(path, where, key, value, *bounds)
+        return [_number(path, where, f"{key}[{i}]", v, domain) for i, v in enumerate(value)]
+    return _number(path, where, key, value, domain)
 
 
 def material_from_dict(data, path="params.json"):
@@ -85,15 +69,16 @@ def material_from_dict(data, path="params.json"):
         where = f"layer {i}"
         if not isinstance(layer, dict):
             raise InputError(f"{path}: {where} must be a JSON object.")
-        unknown = sorted(set(layer) - set(_LAYER_KEYS) - {"phi_p_deg"})
+        unknown = sorted(set(layer) - set(_LAYER_KEYS) - {PHI_RANGE.key})
         if unknown:
-            raise InputError(f"{path}: {where} has unknown key '{unknown[0]}'; expected {', '.join(_LAYER_KEYS)} and optionally phi_p_deg.")
+            raise InputError(f"{path}: {where} has unknown key '{unknown[0]}'; expected {', '.join(_LAYER_KEYS)} "
+                             f"and optionally {PHI_RANGE.key}.")
         fields = {}
-        for key, (field, kind, *bounds) in _LAYER_KEYS.items():
-            if key not in layer:
-                raise InputError(f"{path}: {where} is missing the key '{key}'.")
-            fields[field] = _value(path, where, key, layer[key], kind, *bounds)
-        fields["phi_p"] = _number(path, where, "phi_p_deg", layer.get("phi_p_deg", 0.0), -360.0, 360.0, False, False)
+        for field, domain in LAYER_RANGES.items():
+            if domain.key not in layer:
+                raise InputError(f"{path}: {where} is missing the key '{domain.key}'.")
+            fields[field] = _value(path, where, layer[domain.key], domain)
+        fields["phi_p"] = _value(path, where, layer.get(PHI_RANGE.key, 0.0), PHI_RANGE)
         for field, fixed in FIXED[variant].items():
             if fields[field] != fixed:
                 warnings.warn(f"{path}: {where} '{field}' = {fields[field]:g} is ignored: variant {variant} fixes it to {fixed:g}.",
@@ -107,7 +92,7 @@ def material_from_dict(data, path="params.json"):
     if base["type"] == "lambertian":
         if "albedo" not in base:
             raise InputError(f"{path}: a lambertian base needs an 'albedo' [r, g, b].")
-        albedo = _value(path, "base", "albedo", base["albedo"], "rgb", 0.0, 1.0, False, False)
+        albedo = _value(path, "base", base["albedo"], BASE_ALBEDO_RANGE)
     return Material(layers=tuple(built), base_albedo=albedo, variant=variant, interface=_interface(data, path))
 
 
@@ -119,14 +104,14 @@ def _interface(data, path):
     if not isinstance(spec, dict):
         raise InputError(f"{path}: 'interface' must be an object {{\"eta\": ..., \"alpha_s\": ...}}; leave it out for "
                          "an index-matched top.")
-    unknown = sorted(set(spec) - set(_INTERFACE_KEYS))
+    unknown = sorted(set(spec) - set(INTERFACE_RANGES))
     if unknown:
-        raise InputError(f"{path}: interface has unknown key '{unknown[0]}'; expected {', '.join(_INTERFACE_KEYS)}.")
+        raise InputError(f"{path}: interface has unknown key '{unknown[0]}'; expected {', '.join(INTERFACE_RANGES)}.")
     values = {}
-    for key, (kind, *bounds) in _INTERFACE_KEYS.items():
+    for key, domain in INTERFACE_RANGES.items():
         if key not in spec:
             raise InputError(f"{path}: interface is missing the key '{key}'.")
-        values[key] = _value(path, "interface", key, spec[key], kind, *bounds)
+        values[key] = _value(path, "interface", spec[key], domain)
     return Interface(**values)
 
 

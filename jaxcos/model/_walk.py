@@ -55,47 +55,7 @@ import numpy as np
 
 from . import _interface as I
 from . import _phase as P
-from .._errors import InputError
-
-DEFAULT_WALKS = 128
-"""Walks per incidence direction (the paper's budget)."""
-DEFAULT_BOUNCES = 512
-"""Scattering events per walk (the paper's budget)."""
-BUDGETS = {
-    "fast": (64, 64),
-    "standard": (256, 128),
-    "accurate": (1024, 128),
-    "paper": (DEFAULT_WALKS, DEFAULT_BOUNCES),
-}
-"""Named Monte Carlo budgets ``(walks per incidence, bounces per walk)`` for ``--budget NAME``
-of ``jaxcos fit`` and ``jaxcos eval``; ``accurate`` is the fit's default (its objective;
-the fit's Jacobian uses the first 128 of those walks), ``paper`` the estimator's.
-Measured by ``jaxcos bench accuracy`` (``benchmarks/results/accuracy.md``):
-the error falls as 1/sqrt(walks) at a cost linear in walks, and 128 bounces leave a
-truncation bias under 0.1% (dewy1; 64 bounces: 1%), so bounces beyond 128 buy
-nothing. ``fast`` is for exploring (Monte Carlo error about twice the 2% noise of the
-bundled sets); ``accurate`` costs about 4x ``standard`` in a forward evaluation for half
-its Monte Carlo error."""
-
-
-def resolve_budget(name=None, *, walks=None, bounces=None, default=(DEFAULT_WALKS, DEFAULT_BOUNCES)):
-    """``(walks, bounces)`` of the preset ``name`` of :data:`BUDGETS` (``None``: ``default``); explicit values win.
-
-    Raises:
-        InputError: an unknown preset or a budget that is not a positive integer.
-    """
-    if name is None:
-        base = default
-    elif name in BUDGETS:
-        base = BUDGETS[name]
-    else:
-        raise InputError(f"unknown budget {name!r}; choose one of {', '.join(BUDGETS)}.")
-    walks, bounces = (base[0] if walks is None else walks), (base[1] if bounces is None else bounces)
-    for flag, value in (("--walks", walks), ("--bounces", bounces)):
-        if int(value) != value or value < 1:
-            raise InputError(f"{flag} must be a positive integer, not {value}.")
-    return int(walks), int(bounces)
-
+from ._budget import DEFAULT_BOUNCES, DEFAULT_WALKS
 
 _BASE_PROB = 0.5  # probability of choosing a Lambertian base when flying down
 _MIN_MU = 1e-6

@@ -81,7 +81,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import InputError, refuse_overwrite
-from ..model import Material
+from ..model import RENDER_BUDGET, Material
 from ..model import Query, interface_reflection, simulate, single_scattering, stack_medium
 
 SKIN_ALBEDO = (0.56, 0.28, 0.21)
@@ -97,16 +97,10 @@ ENVIRONMENT = 0.1
 """Radiance of the uniform environment (in the units of :data:`LIGHT_IRRADIANCE`)."""
 LIGHT_RADIUS_DEG = 3.0
 """Angular radius of the light's disc for the exact first-order term."""
-RENDER_WALKS = 256
-"""Walks per grid incidence in a preview. The table shares its walks over the
-whole grid, so their error is mostly a common offset of the whole picture:
-for Dewy 2 at ``t = 1`` over skin, the standard deviation of the BSDF is about
-10% at 64 walks and 6% at 256 (of the directional albedo, which only the
-environment term uses, 12-22% and 6-12%)."""
-RENDER_BOUNCES = 64
-"""Bounces per walk in a preview: over a skin-coloured base less than 1e-10 of
-the energy is left after 64 bounces for the four published products (1e-4
-after 32)."""
+RENDER_WALKS = RENDER_BUDGET.walks
+"""Walks per grid incidence in a preview (:data:`jaxcos.model.RENDER_BUDGET`)."""
+RENDER_BOUNCES = RENDER_BUDGET.bounces
+"""Bounces per walk in a preview (:data:`jaxcos.model.RENDER_BUDGET`)."""
 
 _ALPHA_MIN = 0.2  # platelet roughness floor of the tabulated higher orders (path regularisation)
 _SPIKE = 2.0  # a table node above this many times its neighbours' median is clamped

@@ -25,6 +25,7 @@ from matplotlib.figure import Figure
 
 from .._errors import staged_outputs
 from ..inference import CSV_COLUMNS
+from ..inference._ablate import INTERFACE_SUFFIX
 from ..io import default_exposure, draw_reflectance, material_to_dict
 from ..model import Material
 
@@ -73,6 +74,16 @@ def ablation_report(result):
         "meets a shape.",
         "",
     ]
+    interface = any(v.endswith(INTERFACE_SUFFIX) for v in result.variants)  # not for Kubelka-Munk alone
+    if interface:
+        lines += [
+            "`V+interface`: the variant `V` under a rough dielectric top interface (docs/model.md section 3a), "
+            "with its index `eta` and GGX roughness `alpha_s` fitted besides (2 more parameters). An interface "
+            "with `eta` near 1 is a different model from none, so each is fitted from its own multi-start and "
+            "from `V`'s index-matched fit with the default interface (`eta` 1.5, `alpha_s` 0.1), the better "
+            "kept; AIC and BIC weigh the two extra parameters as any others.",
+            "",
+        ]
     best_rows = []
     for name in result.names:
         rows = [r for r in result.rows if r["file"] == name]
@@ -98,6 +109,21 @@ def ablation_report(result):
         others = sorted((r for r in result.rows if r["file"] == name and r is not best), key=lambda r: r["bic"])
         nxt = f"`{others[0]['variant']}` (+{others[0]['bic'] - best['bic']:.1f})" if others else "—"
         lines.append(f"| {name} | `{best['variant']}` | {nxt} |")
+    if interface:
+        lines += ["", "## With and without the interface", "",
+                  "Differences `V+interface` minus `V` (negative: the interface is preferred); the fitted interface.",
+                  "", "| file | variant | ΔAIC | ΔBIC | preferred by BIC | eta | alpha_s |",
+                  "|---|---|---|---|---|---|---|"]
+        for i, name in enumerate(result.names):
+            for r in result.rows:
+                if r["file"] != name or not r["variant"].endswith(INTERFACE_SUFFIX):
+                    continue
+                plain = r["variant"][:-len(INTERFACE_SUFFIX)]
+                q = next(row for row in result.rows if row["file"] == name and row["variant"] == plain)
+                top = result.fits[(i, r["variant"])].material.interface
+                lines.append(f"| {name} | `{plain}` | {r['aic'] - q['aic']:+.1f} | {r['bic'] - q['bic']:+.1f} | "
+                             f"{'with' if r['bic'] < q['bic'] else 'without'} | {float(top.eta):.3g} | "
+                             f"{float(top.alpha_s):.3g} |")
     if s.get("padded_shape"):
         i, j, n = s["padded_shape"]
         lines += ["", f"Files with std columns were padded to {i} incidences x {j} outgoing directions ({n} points) "

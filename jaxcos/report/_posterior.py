@@ -43,8 +43,8 @@ def _json_safe(x):
 def _laplace_notes(post):
     """One sentence per parameter where the Laplace spread and the chain's disagree, or the prior cuts the posterior."""
     notes = []
-    prior = post.record["prior"]
-    region = post.record["linear_region"]
+    prior = post.record.prior
+    region = post.record.linear_region
     for name, s in post.summary.items():
         half = 0.5 * (s["p84_noise_only"] - s["p16_noise_only"])
         low, high = prior[name]
@@ -73,13 +73,16 @@ def uncertainty_report(post, meas):
     lines = [
         f"# Posterior spreads for {os.path.basename(meas.path) or 'measurements'}",
         "",
-        f"Variant `{r['variant']}`, {r['n_points']} points x 3 channels, {r['n_params']} parameters, "
-        f"uniform priors on their physical ranges, Gaussian likelihood ({r['noise']}"
-        + (f": {r['noise_scale']:.4g}" if r["noise_scale"] is not None else "") + ").",
+        f"Variant `{r.variant}`"
+        + (" under a rough dielectric top interface (its index `eta` and roughness `alpha_s` sampled with the "
+           "rest; docs/model.md section 3a)" if r.interface else "")
+        + f", {r.n_points} points x 3 channels, {r.n_params} parameters, "
+        f"uniform priors on their physical ranges, Gaussian likelihood ({r.noise}"
+        + (f": {r.noise_scale:.4g}" if r.noise_scale is not None else "") + ").",
         "",
     ]
     if not post.converged:
-        lines += [f"**The chain is too short:** {c.steps} steps are {r['chain_in_tau']:.1f} autocorrelation times; "
+        lines += [f"**The chain is too short:** {c.steps} steps are {r.chain_in_tau:.1f} autocorrelation times; "
                   f"{CHAIN_TAUS} are needed for reliable spreads. Run longer (`--steps`).", ""]
     lines += [
         "## Parameters",
@@ -112,19 +115,19 @@ def uncertainty_report(post, meas):
         "", "## Diagnostics", "",
         "| quantity | value |", "|---|---|",
         f"| walkers x steps | {c.walkers} x {c.steps} (burn-in {c.burn} discarded) |",
-        f"| chain length in autocorrelation times | {r['chain_in_tau']:.1f} (needed: {CHAIN_TAUS}) |",
-        f"| acceptance fraction | {r['acceptance_fraction']:.2f} (lowest walker {r['acceptance_fraction_min']:.2f}) |",
+        f"| chain length in autocorrelation times | {r.chain_in_tau:.1f} (needed: {CHAIN_TAUS}) |",
+        f"| acceptance fraction | {r.acceptance_fraction:.2f} (lowest walker {r.acceptance_fraction_min:.2f}) |",
         f"| smallest effective sample size | {np.min(c.ess):.0f} |",
-        f"| sampling time | {r['sampling_time_s']:.0f} s (total {r['time_s']:.0f} s) |",
+        f"| sampling time | {r.sampling_time_s:.0f} s (total {r.time_s:.0f} s) |",
         "", "## Monte Carlo error of the model", "",
-        f"The chain evaluates the linearisation of one estimate at the anchor ({r['budget']['hi_walks']} walks x "
-        f"{r['budget']['bounces']} bounces; slopes by central differences), within the region given in "
+        f"The chain evaluates the linearisation of one estimate at the anchor ({r.hi_walks} walks x "
+        f"{r.bounces} bounces; slopes by central differences), within the region given in "
         "`posterior.json` (`linear_region`). "
-        f"High-budget chi-square at the fit {r['chi2_high_budget_at_fit']:.1f}, at the anchor "
-        f"{r['chi2_high_budget_at_anchor']:.1f}. "
-        f"Median error of the anchor relative to the measurement noise: {r['mc_anchor_error_over_noise']:.2f} (included "
+        f"High-budget chi-square at the fit {r.chi2_high_budget_at_fit:.1f}, at the anchor "
+        f"{r.chi2_high_budget_at_anchor:.1f}. "
+        f"Median error of the anchor relative to the measurement noise: {r.mc_anchor_error_over_noise:.2f} (included "
         f"in the likelihood). RMS error of the sampled model at posterior draws, against independent estimates: "
-        f"{r['mc_model_error_over_noise']:.2f} of the noise. Its effect on the parameters, the `MC sd` column, comes "
+        f"{r.mc_model_error_over_noise:.2f} of the noise. Its effect on the parameters, the `MC sd` column, comes "
         "from independent estimates at the fit mapped through the sensitivities; the intervals include it.",
         "", "![corner plot](corner.png)", "", "![posterior predictive](predictive.png)", "",
         "## What each measurement constrains", "",
@@ -145,6 +148,7 @@ def _corner(post, path):
     fig = corner.corner(samples, labels=post.labels, truths=[s["fit"] for s in post.summary.values()],
                         quantiles=[0.16, 0.5, 0.84], label_kwargs=dict(fontsize=8))
     fig.savefig(path, dpi=70)
+    return fig
 
 
 def _predictive(post, meas, path, slices=4):
@@ -175,7 +179,7 @@ def _sensitivity_maps(post, meas, path):
     from matplotlib.figure import Figure
 
     rows, cols = np.unique(meas.theta_i), np.unique(meas.theta_o)
-    std = meas.std if meas.std is not None else np.full_like(meas.values, post.record["noise_scale"])
+    std = meas.std if meas.std is not None else np.full_like(meas.values, post.record.noise_scale)
     n = len(post.labels)
     ncol = min(n, 4)
     fig = Figure(figsize=(4 * ncol, 2.8 * -(-n // ncol)), constrained_layout=True)
@@ -196,6 +200,7 @@ def _sensitivity_maps(post, meas, path):
     for ax in axes[n:]:
         ax.set_visible(False)
     fig.savefig(path, dpi=80)
+    return fig
 
 
 def write_uncertainty(post, meas, out_dir, *, force=False):
@@ -210,10 +215,10 @@ def write_uncertainty(post, meas, out_dir, *, force=False):
         correlation=dict(labels=post.labels, matrix=post.correlation),
         laplace=dict(labels=post.labels, covariance=post.laplace_cov),
         diagnostics=dict(tau=dict(zip(post.labels, c.tau)), ess=dict(zip(post.labels, c.ess)), steps=c.steps,
-                         burn=c.burn, walkers=c.walkers, chain_in_tau=post.record["chain_in_tau"],
-                         acceptance_fraction=post.record["acceptance_fraction"], converged=c.converged,
+                         burn=c.burn, walkers=c.walkers, chain_in_tau=post.record.chain_in_tau,
+                         acceptance_fraction=post.record.acceptance_fraction, converged=c.converged,
                          required_chain_in_tau=CHAIN_TAUS),
-        record=post.record,
+        record=post.record.to_json(),
         fit=post.fit.record.to_json(),
     )
     with staged_outputs(out_dir, UNCERTAINTY_FILES, force) as tmp:
