@@ -31,6 +31,7 @@ import time
 import uuid
 
 from .._errors import InputError
+from ..io import write_text_atomic
 
 CATALOGUE_FILES = ("catalogue.csv", "catalogue.md", "catalogue.png")
 """What a catalogue run writes at the top of ``--out`` (rewritten by every run, from the result folders)."""
@@ -443,7 +444,7 @@ def write_catalogue(job, table, out, *, elapsed, options):
     writer.writeheader()
     for row in table:
         writer.writerow({k: _cell(row.get(k)) for k in columns})
-    written = [_replace_text(os.path.join(out, "catalogue.csv"), buf.getvalue())]
+    written = [write_text_atomic(os.path.join(out, "catalogue.csv"), buf.getvalue())]
     complete = [r for r in table if r["status"] in ("done", "existing")]
     png = os.path.join(out, "catalogue.png")
     caption = None
@@ -460,7 +461,7 @@ def write_catalogue(job, table, out, *, elapsed, options):
                 os.remove(tmp)
     if caption is None and os.path.exists(png):
         os.remove(png)
-    written.append(_replace_text(os.path.join(out, "catalogue.md"),
+    written.append(write_text_atomic(os.path.join(out, "catalogue.md"),
                                  _markdown(job, table, out, caption=caption, elapsed=elapsed, options=options)))
     if caption is not None:
         written.insert(1, png)
@@ -473,14 +474,6 @@ def _cell(value):
     if isinstance(value, float):
         return f"{value:.6g}"
     return value
-
-
-def _replace_text(path, text):
-    tmp = f"{path}{_PARTIAL}{uuid.uuid4().hex[:8]}"
-    with open(tmp, "w", encoding="utf-8", newline="") as fh:
-        fh.write(text)
-    os.replace(tmp, path)
-    return path
 
 
 def _fmt(value, spec):

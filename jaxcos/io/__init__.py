@@ -13,6 +13,7 @@ from ._measurements import (
     save_measurements,
     spectral_to_srgb,
     write_evaluation,
+    write_text_atomic,
 )
 from ._params import load_params, material_from_dict, material_to_dict, save_params
 from ._plot import cell_edges, default_exposure, draw_reflectance, encode_srgb, plot_measurements

@@ -596,11 +596,15 @@ def save_measurements(meas, path, *, overwrite=False):
     lines = [f"# {key}: {' '.join(str(value).splitlines())}" for key, value in metadata.items()]
     lines.append(",".join(header))
     lines += [",".join(_format(x) for x in row) for row in zip(*columns)]
-    _write_atomic(path, "\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")
 
 
-def _write_atomic(path, text):
-    """Write ``text`` to ``path`` through a temporary file and a rename; InputError if impossible."""
+def write_text_atomic(path, text):
+    """Write ``text`` to ``path`` through a temporary file and a rename (complete or absent); returns ``path``.
+
+    Raises:
+        InputError: ``path`` cannot be written.
+    """
     tmp = f"{path}.tmp"
     try:
         with open(tmp, "w", encoding="utf-8") as fh:
@@ -610,6 +614,7 @@ def _write_atomic(path, text):
         if os.path.exists(tmp):
             os.remove(tmp)
         raise InputError(f"{path}: cannot be written ({err.strerror}).") from None
+    return path
 
 
 _ANGLE_COLUMNS = ("theta_i", "theta_o", "phi_o")
@@ -664,4 +669,4 @@ def write_evaluation(path, theta_i, theta_o, phi_o, values, std, *, quantity, ov
     for k in range(len(theta_i)):
         angles = [theta_i[k], theta_o[k]] + ([phi_o[k]] if with_phi else [])
         lines.append(",".join(f"{a:g}" for a in angles) + "," + ",".join(f"{v:.7g}" for v in (*values[k], *std[k])))
-    _write_atomic(path, "\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")
