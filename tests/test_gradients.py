@@ -76,6 +76,7 @@ TO = [-40.0, 17.0, 35.0, -10.0, 47.0, 65.0]
 QUERY = jaxcos.make_query(TI, TO)
 WALKS = 16  # small on purpose: power comes from many keys; see test 3 for why 16
 BOUNCES = 64
+THIN_AFTER = 4  # the later steps by fewer walks: steps 0-3 all 16 walks, then the first 8 (two chunks, then one)
 CHUNK = 512  # every call gets this batch size, so each program compiles once
 
 
@@ -87,7 +88,8 @@ def _batched(lambertian, detached, connection="nee"):
     def one(v, dv, lp, key, ref):
         def est(v):
             e = jaxcos.simulate(_material(v, lambertian), QUERY, key, walks=WALKS, bounces=BOUNCES, lobe_probs=lp,
-                                sampling=_material(ref, lambertian) if detached else None, connection=connection)
+                                sampling=_material(ref, lambertian) if detached else None, connection=connection,
+                                thin_after=THIN_AFTER)
             return e.f, e.stderr
 
         (f, se), (df, _) = jax.jvp(est, (v,), (dv,))

@@ -65,6 +65,11 @@ class Settings:
         fit_budgets: ``(walks, bounces)`` of the fits.
         fit_multistart: the fit's default multi-start (else one start, the default one).
         check_budget: ``(walks, bounces)`` at which fitted materials are evaluated.
+        efficiency_products: products of the efficiency comparison
+            (:func:`efficiency_material`), each on its own grid.
+        efficiency_budgets: ``(walks, bounces)`` at which the estimator and its
+            reference (every walk makes every step) are compared side by side.
+        efficiency_seeds: independent keys per estimator and budget.
     """
 
     products: tuple
@@ -81,6 +86,9 @@ class Settings:
     fit_budgets: tuple
     fit_multistart: bool
     check_budget: tuple
+    efficiency_products: tuple = ()
+    efficiency_budgets: tuple = ()
+    efficiency_seeds: int = 2
 
 
 FULL = Settings(
@@ -98,6 +106,9 @@ FULL = Settings(
     fit_budgets=((64, 64), (128, 128), (256, 128), (1024, 128)),
     fit_multistart=True,
     check_budget=(8192, 256),
+    efficiency_products=("dewy1", "dewy2", "matte1", "matte2", "matte1 over skin", "slab"),
+    efficiency_budgets=((1024, 128), (128, 512)),
+    efficiency_seeds=6,
 )
 QUICK = Settings(
     products=("matte2",),
@@ -114,6 +125,9 @@ QUICK = Settings(
     fit_budgets=((8, 8),),
     fit_multistart=False,
     check_budget=(32, 8),
+    efficiency_products=("matte2",),
+    efficiency_budgets=((8, 32),),
+    efficiency_seeds=2,
 )
 
 
@@ -155,14 +169,17 @@ def _timed(fn, *args, cpu=None):
 
 
 def reference(material, query, settings, say):
-    """Mean and standard error ``(N, 3)`` of the BSDF at the reference budget (batches of independent keys)."""
+    """Mean and standard error ``(N, 3)`` of the BSDF at the reference budget (batches of independent keys).
+
+    Every walk makes every step (``thin_after=None``).
+    """
     import jax
 
     from ..model import simulate
 
     walks, bounces = settings.reference
     batch = min(settings.reference_batch, walks)
-    run = jax.jit(lambda key: simulate(material, query, key, walks=batch, bounces=bounces))
+    run = jax.jit(lambda key: simulate(material, query, key, walks=batch, bounces=bounces, thin_after=None))
     means, errors = [], []
     t0 = time.perf_counter()
     for b in range(walks // batch):
@@ -177,15 +194,15 @@ def reference(material, query, settings, say):
 # --- one budget -------------------------------------------------------------------
 
 
-def _forward(material, query, walks, bounces, single, seeds):
-    """Compile and run one budget on ``seeds`` keys: estimates, timings, load."""
+def _forward(material, query, walks, bounces, single, seeds, **options):
+    """Compile and run one budget on ``seeds`` keys: estimates, timings, load. ``options`` go to ``simulate``."""
     import jax
 
     from ..model import lobe_probabilities, simulate
 
     lp = lobe_probabilities(material)
     run = jax.jit(lambda key: simulate(material, query, key, walks=walks, bounces=bounces, lobe_probs=lp,
-                                       single_scattering=single))
+                                       single_scattering=single, **options))
     load_before = _load()
     keys = [jax.random.key(1000 + s) for s in range(seeds)]
     first, t_first = _timed(run, keys[0])
@@ -290,6 +307,74 @@ def sweep_product(product, settings, say):
     return records, ref_info
 
 
+# --- efficiency: the estimator against its reference, side by side ----------------------
+
+
+def efficiency_material(name):
+    """A product of the efficiency comparison and its angle pairs ``(theta_i, theta_o)``.
+
+    A published product on the standard grid; ``"matte1 over skin"``: matte1
+    at ``t = 2`` over a Lambertian base of albedo (0.6, 0.45, 0.35); ``"slab"``:
+    an index-matched Henyey-Greenstein slab (``t = 2``, albedo 0.95, ``g = 0.5``,
+    black base) on 60 in-plane pairs (``theta_i`` 0..75 step 15 by ``theta_o``
+    -67.5..67.5 step 15), the scene on which a general-purpose renderer was
+    measured (issue 32).
+    """
+    from ..model import Layer, Material, published
+
+    if name == "slab":
+        layer = Layer(t=2.0, c_d=1.0, albedo_d=(0.95, 0.95, 0.95), g1=0.5, g2=0.5, w_g=1.0, albedo_p=(0.5, 0.5, 0.5),
+                      alpha_p=0.5, theta_p=0.0)
+        ti = np.repeat(np.arange(0.0, 90.0, 15.0), 10)
+        to = np.tile(np.arange(-67.5, 70.0, 15.0), 6)
+        return Material(layers=(layer,), variant="diffusers_only"), (ti, to)
+    if name == "matte1 over skin":
+        return Material(layers=published("matte1", t=2.0).layers, base_albedo=(0.6, 0.45, 0.35)), standard_grid()
+    return published(name), standard_grid()
+
+
+def efficiency(settings, say):
+    """``1 / (RMS relative error^2 x CPU seconds)`` of one forward evaluation, the estimator against its reference.
+
+    For each product and budget of ``settings``, the default estimator
+    (fewer walks for the later steps) and the reference one (every walk makes
+    every step, ``thin_after=None``) run side by side on the same keys, after
+    one reference BSDF per product (:func:`reference`). The error is the RMS
+    over kept points, channels and keys; the reference's own RMS relative
+    error (the floor) is recorded, not subtracted. Returns a list of records.
+    """
+    from ..model import make_query
+
+    records = []
+    for product in settings.efficiency_products:
+        material, angles = efficiency_material(product)
+        query = make_query(*angles)
+        say(f"efficiency, {product}: reference")
+        ref, ref_se = reference(material, query, settings, say)
+        ref_rel = np.max(ref_se / np.maximum(ref, 1e-30), axis=-1)
+        keep = ref_rel <= settings.max_reference_rel_stderr
+        floor = float(np.sqrt(np.mean((ref_se / ref)[keep] ** 2)))
+        for walks, bounces in settings.efficiency_budgets:
+            row = dict(product=product, walks=walks, bounces=bounces, points=int(ref.shape[0]), kept=int(keep.sum()),
+                       reference_floor=floor)
+            for label, thin in (("reference", None), ("estimator", "default")):
+                options = {} if thin == "default" else dict(thin_after=None)
+                estimates, timing = _forward(material, query, walks, bounces, "exact", settings.efficiency_seeds,
+                                             **options)
+                rms, _ = _errors(estimates, ref, keep)
+                bias = float(np.mean([np.mean(((np.asarray(e.f, float) - ref) / ref)[keep]) for e in estimates]))
+                row[label] = dict(rms_rel_error=rms, mean_rel_error=bias, forward_s=timing["forward_s"],
+                                  forward_cpu_s=timing["forward_cpu_s"], compile_s=timing["compile_s"],
+                                  load=timing["forward_load"],
+                                  efficiency=1.0 / (rms ** 2 * max(timing["forward_cpu_s"], 1e-9)))
+            row["ratio"] = row["estimator"]["efficiency"] / row["reference"]["efficiency"]
+            records.append(row)
+            say(f"  {walks:5d} walks x {bounces:3d} bounces: error {100 * row['reference']['rms_rel_error']:.2f} -> "
+                f"{100 * row['estimator']['rms_rel_error']:.2f} %, CPU {1e3 * row['reference']['forward_cpu_s']:.0f} -> "
+                f"{1e3 * row['estimator']['forward_cpu_s']:.0f} ms: efficiency x {row['ratio']:.2f}")
+    return records
+
+
 # --- end to end: fits -------------------------------------------------------------------
 
 
@@ -388,7 +473,7 @@ def accuracy_benchmark(*, quick=False, progress=None):
     :data:`FULL`. ``progress(message)`` is told about each stage and budget.
     The dict holds ``machine`` (:func:`machine_record`), ``quick``,
     ``settings``, ``sweep`` and ``reference`` (:func:`sweep_product`),
-    ``fits`` and ``fit_truth`` (:func:`fit_budgets`), ``load_after`` and
+    ``efficiency`` (:func:`efficiency`), ``fits`` and ``fit_truth`` (:func:`fit_budgets`), ``load_after`` and
     ``total_s``.
     """
     say = progress or (lambda msg: None)
@@ -400,6 +485,7 @@ def accuracy_benchmark(*, quick=False, progress=None):
         records, ref_info = sweep_product(product, settings, say)
         data["sweep"] += records
         data["reference"][product] = ref_info
+    data["efficiency"] = efficiency(settings, say)
     data["fits"], data["fit_truth"] = fit_budgets(settings, say)
     data["load_after"] = list(os.getloadavg())
     data["total_s"] = time.perf_counter() - t0

@@ -65,7 +65,8 @@ Every fit reports the energy its walks left unfinished at 128 bounces (docs/meth
 "Monte Carlo budget")."""
 
 FIT_JACOBIAN_WALKS = 128
-"""Walks of the fit's Jacobian: the first 128 of the objective's own walks (same key).
+"""Walks of the fit's Jacobian: the first 128 of the objective's own walks (same key; in the later
+steps, made by fewer walks, the first of those).
 Levenberg-Marquardt needs a good descent direction, not an exact slope; its steps are
 accepted on the value (docs/method.md)."""
 

@@ -200,6 +200,27 @@ def accuracy_table(data):
                          f"{1e3 * r['forward_s']:.0f} / {1e3 * r.get('forward_cpu_s', float('nan')):.0f} ms | {jac} | "
                          f"{r['forward_load'][1][0]:.1f} |")
         lines.append("")
+    if data.get("efficiency"):
+        lines += [
+            "## Efficiency: the estimator against its reference, side by side",
+            "",
+            "Efficiency = 1 / (RMS relative error^2 x CPU seconds) of one forward evaluation (exact single "
+            f"scattering, {s['efficiency_seeds']} keys, the same for both). *Reference*: every walk makes every "
+            "step (`simulate(thin_after=None)`, the estimator before 2026-12-02); *estimator*: the default, whose "
+            "later steps are made by fewer walks. The error includes the reference BSDF's own (the floor).",
+            "",
+            "| product | walks | bounces | floor | error ref. / est. | mean error ref. / est. | CPU ref. / est. | "
+            "efficiency ref. / est. | ratio |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for r in data["efficiency"]:
+            a, b = r["reference"], r["estimator"]
+            lines.append(f"| {r['product']} | {r['walks']} | {r['bounces']} | {100 * r['reference_floor']:.2f}% | "
+                         f"{100 * a['rms_rel_error']:.2f}% / {100 * b['rms_rel_error']:.2f}% | "
+                         f"{100 * a['mean_rel_error']:+.2f}% / {100 * b['mean_rel_error']:+.2f}% | "
+                         f"{1e3 * a['forward_cpu_s']:.0f} / {1e3 * b['forward_cpu_s']:.0f} ms | "
+                         f"{a['efficiency']:.0f} / {b['efficiency']:.0f} | {r['ratio']:.2f} |")
+        lines.append("")
     t = data["fit_truth"]
     lines += [
         f"## End to end: fits of {t['product']}",
