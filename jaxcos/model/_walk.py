@@ -283,7 +283,7 @@ def _uniforms(seed, step, walks, n, dtype, first=0):
 
 # --- fewer walks for the later steps ----------------------------------------------------
 
-THIN_AFTER = 16
+THIN_AFTER = 32
 """Steps that every walk makes; after them the walk count halves, and halves again each time
 the step count doubles (:func:`stages`)."""
 THIN_HALVINGS = 4
@@ -305,9 +305,9 @@ def stages(walks, bounces, thin_after=THIN_AFTER):
     after 64), so those steps are cheap to estimate from fewer walks. The count
     halves after ``thin_after`` steps and each time the step count doubles,
     at most :data:`THIN_HALVINGS` times, while it halves evenly and stays at
-    least :data:`THIN_CHUNK`: 1024 x 128 walks 1024, 512, 256, 128 from steps 0,
-    16, 32, 64 (40 steps a walk instead of 128). ``thin_after=None``: every walk
-    makes every step.
+    least :data:`THIN_CHUNK`: at 1024 x 128 walks 1024, 512, 256 from steps 0,
+    32, 64 (64 steps a walk instead of 128; at 128 x 512, 96 instead of 512).
+    ``thin_after=None``: every walk makes every step.
     """
     if thin_after is None:
         return ((0, bounces, walks),)
