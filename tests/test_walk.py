@@ -1059,8 +1059,6 @@ def test_thinned_standard_errors_match_the_spread_over_keys(thin_after):
     band is wide enough). The plain standard deviation over the thinned walks, which treats them as
     identically distributed, overstates the error by about 13 % (ratio 0.88) and fails it.
     """
-    from jaxcos.model._walk import stage_stderr
-
     material = jaxcos.published("dewy1")
     query = jaxcos.make_query([0.0, 0.0, 0.0, 30.0, 30.0, 30.0, 30.0, 30.0, 60.0, 60.0, 60.0, 60.0, 75.0, 75.0, 75.0],
                               [0.0, 30.0, -60.0, -30.0, 0.0, 30.0, 60.0, -75.0, -60.0, 0.0, 60.0, 80.0, 75.0, 0.0, -40.0])
