@@ -43,7 +43,7 @@ def _synthetic(material, start, seed=7, rel=0.05, add=0.005):
     ti = np.repeat([0.0, 20.0, 40.0, 60.0], 13)
     to = np.tile([-70.0, -50.0, -30.0, -10.0, 5.0, 15.0, 25.0, 35.0, 45.0, 55.0, 65.0, 75.0, 85.0], 4)
     est = jaxcos.simulate(material, jaxcos.make_query(ti, to), jax.random.key(SEED), walks=WALKS, bounces=BOUNCES,
-                          lobe_probs=jaxcos.lobe_probabilities(start))
+                          lobe_probs=jaxcos.lobe_probabilities(start), thin_after=None)  # as Problem.thin_after
     f = np.pi * np.asarray(est.f, dtype=float)
     std = np.sqrt((rel * f) ** 2 + add ** 2)
     values = f + std * np.random.default_rng(seed).standard_normal(f.shape)

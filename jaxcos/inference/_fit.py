@@ -310,7 +310,10 @@ class Problem(WeightedLeastSquares):
     and channels (:class:`WeightedLeastSquares`); ``model`` is in the file's quantity (``scale`` times the
     BSDF, :attr:`jaxcos.io.Measurements.scale`). Their value uses ``walks`` walks; their
     Jacobian (forward mode, a ``custom_jvp``) the first ``jacobian_walks`` of them (all when
-    ``None``).
+    ``None``). ``thin_after``: ``simulate``'s; ``None`` by default, every walk making every
+    step. Fits with the later steps made by fewer walks (``simulate``'s default, 32) were
+    faster but recovered fewer random materials under a fixed key (1 of 8 against 3 of 8
+    on the same data; benchmarks/RESULTS.md, decision records).
     """
 
     param: Parameterization
@@ -326,12 +329,13 @@ class Problem(WeightedLeastSquares):
     incidence_batch: int = eqx.field(static=True, default=None)
     connection: str = eqx.field(static=True, default="nee")
     boundary_prob: jnp.ndarray = None
+    thin_after: int = eqx.field(static=True, default=None)
 
     def estimate(self, x):
         """The :class:`~jaxcos.Estimate` of the material at ``x`` under this problem's key and budget."""
         return simulate(self.param.to_material(x), self.query, self.key, walks=self.walks,
                         bounces=self.bounces, lobe_probs=self.lobe_probs, incidence_batch=self.incidence_batch,
-                        connection=self.connection, boundary_prob=self.boundary_prob)
+                        connection=self.connection, boundary_prob=self.boundary_prob, thin_after=self.thin_after)
 
     def model(self, x):
         """The model in the file's quantity, ``(N, 3)``."""

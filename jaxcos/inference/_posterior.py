@@ -251,7 +251,7 @@ def _estimate(problem, v):
     """The estimate at the physical values ``v`` under the key, budget and lobe probabilities of ``problem``."""
     return simulate(problem.param.physical_to_material(v), problem.query, problem.key, walks=problem.walks,
                     bounces=problem.bounces, lobe_probs=problem.lobe_probs, connection=problem.connection,
-                    boundary_prob=problem.boundary_prob)
+                    boundary_prob=problem.boundary_prob, thin_after=problem.thin_after)
 
 
 @eqx.filter_jit
