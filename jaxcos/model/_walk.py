@@ -378,16 +378,14 @@ def stage_stderr(acc, plan):
 
     Walks that made the same steps are identically distributed: the variance
     of the mean is ``sum_g n_g s_g^2 / W^2`` over those groups (``s_g^2``:
-    the group's sample variance).
+    the group's sample variance; :func:`stages` makes groups of at least
+    :data:`THIN_CHUNK` walks).
     """
     walks = plan[0][2]
     if len(plan) == 1:
         return jnp.std(acc, axis=1, ddof=1) / jnp.sqrt(walks)
     bounds = sorted({n for _, _, n in plan} | {0})
-    var = 0.0
-    for lo, hi in zip(bounds[:-1], bounds[1:]):
-        part = acc[:, lo:hi]
-        var = var + (hi - lo) * jnp.var(part, axis=1, ddof=1) if hi - lo > 1 else var
+    var = sum((hi - lo) * jnp.var(acc[:, lo:hi], axis=1, ddof=1) for lo, hi in zip(bounds[:-1], bounds[1:]))
     return jnp.sqrt(var) / walks
 
 
