@@ -3,6 +3,7 @@
     python benchmarks/bench_recovery.py --n 40 --seed 1 --out /tmp/recovery
     python benchmarks/bench_recovery.py --quick --out /tmp/recovery_quick      # 2 sets, small budgets
     python benchmarks/bench_recovery.py --n 40 --seed 1 --sets 10-19 --out /tmp/recovery   # a subset
+    python benchmarks/bench_recovery.py --n 40 --seed 1 --interface --out /tmp/recovery_interface
 
 Each set ``i`` (0 .. N-1) is drawn from its own generator,
 ``numpy.random.default_rng([seed, i])``, so a set does not depend on which
@@ -32,6 +33,10 @@ A set:
    fit's), with the fit's estimator (its connection) and each material's own lobe
    probabilities, per degree of freedom (``3 N - 12``). A set passes when the
    fit's is at most ``--tolerance`` (1.2) times the truth's.
+
+With ``--interface`` each truth also has a top interface (:func:`draw_interface`;
+simulated with next-event estimation, the connection through it), and the fit
+has ``interface=True``.
 
 Writes, in ``--out``: ``data/set_XXX.csv`` (each set, truth in its metadata),
 ``sets.jsonl`` (one JSON record per set, appended as each finishes), ``sets.csv``
@@ -86,32 +91,48 @@ def draw_truth(rng):
     return material, variant
 
 
+def draw_interface(seed, index):
+    """The top interface of set ``index`` with ``--interface``: ``eta`` U(1.2, 1.8), ``alpha_s`` log-uniform on
+    [0.02, 0.5], from its own generator ``default_rng([seed, index, 1])``, so that the set's other draws are those
+    of the set without it."""
+    rng = np.random.default_rng([seed, index, 1])
+    return jaxcos.Interface(eta=rng.uniform(1.2, 1.8), alpha_s=float(np.exp(rng.uniform(np.log(0.02), np.log(0.5)))))
+
+
 @eqx.filter_jit
-def _simulate(material, query, key, walks, bounces):
-    return jaxcos.simulate(material, query, key, walks=walks, bounces=bounces, connection="mis")
+def _simulate(material, query, key, walks, bounces, connection):
+    return jaxcos.simulate(material, query, key, walks=walks, bounces=bounces, connection=connection)
 
 
 def simulate_set(material, theta_i, theta_o, key, walks, bounces):
-    """Reflectance factor ``pi f`` and its standard error, ``(N, 3)``, from ``walks`` walks in batches."""
+    """Reflectance factor ``pi f`` and its standard error, ``(N, 3)``, from ``walks`` walks in batches.
+
+    MIS connection (unbiased and steadier for narrow lobes); next-event estimation under a top interface,
+    the only connection through it.
+    """
     query = jaxcos.make_query(theta_i, theta_o)
     batch = min(walks, SIM_BATCH)
+    connection = "nee" if material.interface is not None else "mis"
     means, errors = [], []
     for b in range(max(walks // batch, 1)):
-        est = _simulate(material, query, jax.random.fold_in(key, b), batch, bounces)
+        est = _simulate(material, query, jax.random.fold_in(key, b), batch, bounces, connection)
         means.append(np.asarray(est.f, float))
         errors.append(np.asarray(est.stderr, float))
     k = len(means)
     return np.pi * np.mean(means, axis=0), np.pi * np.sqrt(np.sum(np.square(errors), axis=0)) / k
 
 
-def make_set(seed, index, sim_walks, sim_bounces):
+def make_set(seed, index, sim_walks, sim_bounces, interface=False):
     """Set ``index`` of generator ``seed``: ``(measurements, truth, variant, product, generator)``.
 
     The generator (``default_rng([seed, index])``) is returned for the later draws
-    of the set (its check keys), so that they too depend on the set alone.
+    of the set (its check keys), so that they too depend on the set alone. With
+    ``interface``, the truth has a top interface (:func:`draw_interface`).
     """
     rng = np.random.default_rng([seed, index])
     truth, variant = draw_truth(rng)
+    if interface:
+        truth = jaxcos.Material(layers=truth.layers, variant=variant, interface=draw_interface(seed, index))
     product = int(rng.choice(PRODUCTS))
     theta_i, theta_o = read_grid(product)
     sim_key = jax.random.key(int(rng.integers(2 ** 31)))
@@ -125,7 +146,8 @@ def make_set(seed, index, sim_walks, sim_bounces):
         "parameters": json.dumps(material_to_dict(truth)),
         "angles": f"positions measured for product {product} in jaxcos/data/grid.csv",
         "noise": f"value = v + N(0, s^2), s = sqrt(({NOISE_RELATIVE} v)^2 + {NOISE_ABSOLUTE}^2)",
-        "monte_carlo": f"walks = {sim_walks}, bounces = {sim_bounces}, MIS connection; MC error / noise std: "
+        "monte_carlo": f"walks = {sim_walks}, bounces = {sim_bounces}, "
+                       f"{'NEE' if interface else 'MIS'} connection; MC error / noise std: "
                        f"median {np.median(ratio):.2f}, max {ratio.max():.2f}",
     }
     meas = Measurements(theta_i=theta_i, theta_o=theta_o, phi_o=np.zeros_like(theta_i), values=values, std=s,
@@ -143,9 +165,15 @@ def physical(material):
     return out
 
 
+def _interface(material):
+    """``{"eta": ..., "alpha_s": ...}`` of a material's top interface."""
+    return {n: float(getattr(material.interface, n)) for n in ("eta", "alpha_s")}
+
+
 def score(meas, material, key, walks):
     """The material's reduced chi-square under independent keys (``check``), its SE, and the raw check."""
-    param = parameterization("two_lobe")  # the fit's parameterization: its dof and its map
+    # the fit's parameterization: its dof and its map
+    param = parameterization("two_lobe", interface=material.interface is not None, template=material)
     problem = make_problem(meas, param, key=key, walks=walks // CHECK_BATCHES, reference=material)
     x = param.from_material(material)
     result = check(problem, meas, x, key=key, walks=walks, batches=CHECK_BATCHES)
@@ -174,14 +202,16 @@ def errors(fitted, truth, variant):
 
 def run_set(args, index):
     started = time.perf_counter()
-    meas, truth, variant, product, rng, mc_ratio = make_set(args.seed, index, args.sim_walks, args.sim_bounces)
+    meas, truth, variant, product, rng, mc_ratio = make_set(args.seed, index, args.sim_walks, args.sim_bounces,
+                                                            interface=args.interface)
     data = Path(args.out) / "data"
     data.mkdir(parents=True, exist_ok=True)
     save_measurements(meas, data / f"set_{index:03d}.csv", overwrite=True)
     simulated = time.perf_counter() - started
     stages = []
     t0 = time.perf_counter()
-    result = jaxcos.fit(meas, seed=args.fit_seed, progress=lambda m: stages.append(round(time.perf_counter() - t0, 1)))
+    result = jaxcos.fit(meas, seed=args.fit_seed, interface=args.interface or None,
+                        progress=lambda m: stages.append(round(time.perf_counter() - t0, 1)))
     fit_time = time.perf_counter() - t0
     eval_key = jax.random.key(int(rng.integers(2 ** 31)))
     fit_chi2, fit_se = score(meas, result.material, jax.random.fold_in(eval_key, 0), args.eval_walks)
@@ -195,18 +225,25 @@ def run_set(args, index):
         fit_time_s=round(fit_time, 1), simulate_time_s=round(simulated, 1), stage_times_s=stages,
         fit_own_check=result.record.check.reduced_chi2, load_average=[round(v, 2) for v in os.getloadavg()],
         truth=true, fitted=fitted, error=errors(fitted, true, variant),
+        interface=dict(truth=_interface(truth), fitted=_interface(result.material)) if args.interface else None,
         starts=[dict(label=s.label, loss=s.loss, material_chi2=s.material_chi2) for s in result.starts],
         fixed_starts=list(result.record.fixed_starts), connection=result.record.connection,
     )
-    with open(Path(args.out) / "sets.jsonl", "a") as fh:
-        fh.write(json.dumps(record) + "\n")
+    append_record(args.out, record)
     return record
 
 
 # --- the report ---------------------------------------------------------------------------
 
 
+def append_record(out, record):
+    """Append one set's record to ``OUT/sets.jsonl``."""
+    with open(Path(out) / "sets.jsonl", "a") as fh:
+        fh.write(json.dumps(record) + "\n")
+
+
 def load_records(out):
+    """``{set: record}`` of ``OUT/sets.jsonl`` (empty when there is none): the sets already run."""
     path = Path(out) / "sets.jsonl"
     if not path.exists():
         return {}
@@ -285,6 +322,8 @@ def main():
     parser.add_argument("--sim-bounces", type=int, default=128, help="bounces of the simulated data (default 128)")
     parser.add_argument("--eval-walks", type=int, default=16384, help="walks of each score (default 16384)")
     parser.add_argument("--tolerance", type=float, default=1.2, help="pass: fit chi2 <= this x truth's (1.2)")
+    parser.add_argument("--interface", action="store_true",
+                        help="truths under a top interface (draw_interface), fitted with --interface")
     parser.add_argument("--report-only", action="store_true", help="rewrite sets.csv and summary.md from sets.jsonl")
     args = parser.parse_args()
     if args.quick:

@@ -1,111 +1,275 @@
-"""Posterior spreads: coverage over synthetic replicates with a known truth, and one bundled report's cost.
+"""Posterior spreads: coverage of random truths, and one bundled report's cost.
 
-    python benchmarks/bench_uncertainty.py coverage [--replicates 20] [--hi-walks 8192]
+    python benchmarks/bench_uncertainty.py coverage --n 40 --seed 3 --out /tmp/coverage
+    python benchmarks/bench_uncertainty.py coverage --n 40 --seed 3 --no-std --out /tmp/coverage_nostd
+    python benchmarks/bench_uncertainty.py coverage --n 40 --seed 3 --interface --out /tmp/coverage_interface
+    python benchmarks/bench_uncertainty.py coverage --quick --out /tmp/coverage_quick   # 2 sets, small budgets
     python benchmarks/bench_uncertainty.py report [--data measurements/matte2.csv]
 
-Writes ``benchmarks/results/uncertainty_coverage_hi<N>.json`` or ``uncertainty_report.json``.
+**Coverage.** Set ``i`` is set ``i`` of the randomized recovery benchmark
+(``bench_recovery.py``, generator ``default_rng([seed, i])``): a random
+one-layer material from the priors of issue 31 on the instrument's angles for
+one product, simulated at ``--sim-walks`` walks under its own keys, with the
+bundled sets' noise and std columns (``--no-std`` removes them: the posterior
+then estimates the noise, :class:`jaxcos.inference.NoiseModel`; ``--interface``
+puts each truth under a top interface, whose ``eta`` and ``alpha_s`` are then
+sampled too). The fit starts
+from the truth in the truth's variant (``jaxcos.fit(meas, variant=...,
+start=truth)``), so that a failure of the search (issue 31) is not counted as
+one of the error bars; ``jaxcos.uncertainty`` then runs with its defaults.
 
-Coverage: the single-lobe problem of ``tests/test_posterior.py`` (4 incidences x
-13 viewing angles, 10 parameters, 5% + 0.005 noise on the truth's curve from
-a 2^18-walk estimate, whose own error is 0.02 noise-sd per point). Each
-replicate draws new noise and uses new
-Monte Carlo keys, fits from the truth and samples the posterior. Reported: the
-fraction of (replicate, parameter) pairs whose truth lies in the 68% interval
-(expected 0.68), the same for the Laplace interval, and for the chain's
-noise-only interval.
+Per set and parameter: the truth's place in the posterior (the fraction of
+draws below it, the chain's draws plus their Monte Carlo shift, as the
+intervals are made), whether the 68% and 95% intervals hold it, and whether
+the data identify the parameter (its 95% interval narrower than half the prior).
+A calibrated posterior holds the truth at each nominal level within the
+binomial band. Each set is appended to ``sets.jsonl`` as it finishes (a rerun
+into the same ``--out`` resumes); ``summary.md`` and ``coverage.png``
+(coverage against nominal level) are rewritten after each.
+
+**Report.** ``jaxcos uncertainty`` on a bundled file with its defaults; writes
+``benchmarks/results/uncertainty_report.json``.
 """
 
 import argparse
+import dataclasses
 import json
 import os
-import platform
 import sys
 import time
+from pathlib import Path
 
-import jax
 import numpy as np
+from scipy.stats import binom
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, "..", "tests"))
+sys.path.insert(0, HERE)
 
 import jaxcos  # noqa: E402
+from jaxcos.inference._bench import machine_record  # noqa: E402
+from jaxcos.inference._posterior import HI_WALKS  # noqa: E402
+from bench_recovery import append_record, load_records, make_set, parse_sets  # noqa: E402
+
+LEVELS = np.linspace(0.05, 0.95, 19)
+"""Nominal levels of the coverage curve (central intervals)."""
 
 
-def _machine():
-    return dict(platform=platform.platform(), python=platform.python_version(), cpus=os.cpu_count(),
-                jax=jax.__version__, load_average=os.getloadavg())
-
-
-TRUTH_WALKS = 1 << 18
-
-
-def coverage(replicates, hi_walks):
-    from test_posterior import TRUTH, _synthetic
-
-    rows = []
+def run_set(args, index):
+    started = time.perf_counter()
+    meas, truth, variant, product, rng, _ = make_set(args.seed, index, args.sim_walks, args.sim_bounces,
+                                                     interface=args.interface)
+    if args.no_std:
+        meas = dataclasses.replace(meas, std=None)
     t0 = time.perf_counter()
-    for r in range(replicates):
-        data = _synthetic(seed=100 + r, walks=TRUTH_WALKS)
-        start = jaxcos.fit(data, variant="single_lobe", walks=128, bounces=48, start=TRUTH, seed=r)
-        post = jaxcos.uncertainty(data, start, seed=r, walkers=24, max_steps=1000, hi_walks=hi_walks, checks=4,
-                                  replicas=12)
-        truth = np.asarray(start.param.to_physical(start.param.from_material(TRUTH)), float)
-        row = dict(replicate=r, converged=post.converged, chain_in_tau=post.record.chain_in_tau,
-                   min_ess=float(np.min(post.chain.ess)), in68=[], in95=[], in68_noise_only=[], in68_laplace=[],
-                   z=[], z_fit=[], fit=[], median=[])
-        for name, value in zip(post.labels, truth):
-            s = post.summary[name]
-            row["in68"].append(bool(s["p16"] <= value <= s["p84"]))
-            row["in95"].append(bool(s["p2.5"] <= value <= s["p97.5"]))
-            row["in68_noise_only"].append(bool(s["p16_noise_only"] <= value <= s["p84_noise_only"]))
-            row["in68_laplace"].append(bool(abs(value - s["fit"]) <= s["laplace_sd"]))
-            # (median - truth) over the half-width of the 68% interval, and the fit's offset over the Laplace sd
-            row["z"].append((s["median"] - value) / (0.5 * (s["p84"] - s["p16"])))
-            row["z_fit"].append((s["fit"] - value) / s["laplace_sd"])
-            row["fit"].append(s["fit"])
-            row["median"].append(s["median"])
-        rows.append(row)
-        print(f"replicate {r}: 68% {np.mean(row['in68']):.2f}, 95% {np.mean(row['in95']):.2f}, "
-              f"{time.perf_counter() - t0:.0f} s", flush=True)
-    frac = {k: float(np.mean([row[k] for row in rows])) for k in ("in68", "in95", "in68_noise_only", "in68_laplace")}
-    n = replicates * len(rows[0]["in68"])
-    z = np.array([row["z"] for row in rows])
-    return dict(machine=_machine(), replicates=replicates, truth_walks=TRUTH_WALKS, hi_walks=hi_walks,
-                mean_z=z.mean(axis=0).tolist(), rms_z=np.sqrt((z ** 2).mean(axis=0)).tolist(),
-                pairs=n, coverage=frac,
-                binomial_se_68=float(np.sqrt(0.68 * 0.32 / n)), labels=list(post.labels), rows=rows,
-                time_s=time.perf_counter() - t0)
+    fitted = jaxcos.fit(meas, variant=variant, start=truth, seed=args.fit_seed)
+    fit_time = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    post = jaxcos.uncertainty(meas, fitted, seed=args.fit_seed, hi_walks=args.hi_walks)
+    post_time = time.perf_counter() - t0
+    param = fitted.param
+    true = np.asarray(param.to_physical(param.from_material(truth)), float)
+    low, high = param.bounds()
+    # the draws the intervals are percentiles of: the chain's, each shifted by a draw of its Monte Carlo error
+    shift = rng.multivariate_normal(np.zeros(param.size), post.mc_cov, size=post.chain.samples.shape[0],
+                                    method="eigh")
+    draws = np.clip(post.chain.samples + shift, low, high)
+    pit = np.mean(draws < true, axis=0) + 0.5 * np.mean(draws == true, axis=0)
+    rows = {}
+    for i, name in enumerate(post.labels):
+        s = post.summary[name]
+        rows[name] = dict(truth=float(true[i]), median=s["median"], p16=s["p16"], p84=s["p84"],
+                          p2_5=s["p2.5"], p97_5=s["p97.5"], pit=float(pit[i]),
+                          in68=bool(s["p16"] <= true[i] <= s["p84"]),
+                          in95=bool(s["p2.5"] <= true[i] <= s["p97.5"]),
+                          identified=bool(s["p97.5"] - s["p2.5"] < 0.5 * (high[i] - low[i])),
+                          z=float((s["median"] - true[i]) / max(0.5 * (s["p84"] - s["p16"]), 1e-300)))
+    record = dict(
+        set=index, seed=args.seed, fit_seed=args.fit_seed, variant=variant, product=product, no_std=args.no_std,
+        interface=args.interface,
+        n_points=int(meas.values.shape[0]), converged=post.converged, chain_in_tau=post.record.chain_in_tau,
+        min_ess=float(np.min(post.chain.ess)), fit_time_s=round(fit_time, 1), posterior_time_s=round(post_time, 1),
+        total_time_s=round(time.perf_counter() - started, 1), hi_walks=args.hi_walks,
+        noise_relative=post.record.noise_relative, noise_absolute=post.record.noise_absolute,
+        chi2_high_budget_at_anchor=post.record.chi2_high_budget_at_anchor, parameters=rows,
+        load_average=[round(v, 2) for v in os.getloadavg()],
+    )
+    append_record(args.out, record)
+    return record
 
 
-def report(path):
+def band(n, p):
+    """The central 95% binomial band of a coverage fraction at nominal ``p`` from ``n`` pairs."""
+    return binom.ppf(0.025, n, p) / n, binom.ppf(0.975, n, p) / n
+
+
+def _group(name):
+    """A parameter's group for the tables: RGB channels together."""
+    return name.split("[")[0]
+
+
+def coverage_curve(pits):
+    """Fraction of central intervals at each of :data:`LEVELS` that hold the truth, from the truths' PIT values."""
+    pits = np.asarray(pits, float)
+    return np.array([np.mean(np.abs(pits - 0.5) <= level / 2) for level in LEVELS])
+
+
+def write_reports(args, records):
+    out = Path(args.out)
+    sets = sorted(records.values(), key=lambda r: r["set"])
+    pairs = [(r["set"], name, p) for r in sets for name, p in r["parameters"].items()]
+    identified = [(s, n, p) for s, n, p in pairs if p["identified"]]
+    groups = list(dict.fromkeys(_group(n) for _, n, _ in pairs))
+    machine = machine_record()
+    times = [r["total_time_s"] for r in sets]
+    lines = [
+        "# Posterior coverage of random truths", "",
+        f"Command: `python benchmarks/bench_uncertainty.py {' '.join(sys.argv[1:])}`", "",
+        f"- sets: {len(sets)} random materials (generator seed {args.seed}, fit seed {args.fit_seed}), "
+        f"{'std columns removed, noise estimated' if args.no_std else 'with std columns'}"
+        f"{', under a top interface' if args.interface else ''}; data at "
+        f"{args.sim_walks} walks x {args.sim_bounces} bounces; posterior at {args.hi_walks} walks",
+        f"- chains converged: {sum(r['converged'] for r in sets)} of {len(sets)}; smallest ESS "
+        f"{min((r['min_ess'] for r in sets), default=float('nan')):.0f}",
+        f"- time per set (fit + posterior): median {np.median(times) if times else float('nan'):.0f} s, total "
+        f"{sum(times):.0f} s",
+        f"- machine: {machine['platform']}, {machine['cpus']} CPUs, jax {machine['jax']} ({machine['backend']}), "
+        f"load average now {machine['load_average']}", "",
+        "Coverage: the fraction of (set, parameter) pairs whose interval holds the truth, with the central 95% "
+        "binomial band of a calibrated posterior at that count. `identified`: the pairs whose 95% interval is "
+        "narrower than half the prior.", "",
+        "| parameters | pairs | 68% | band | 95% | band | identified pairs | 68% | 95% |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+
+    def row(label, chosen):
+        n = len(chosen)
+        if not n:
+            return None
+        ident = [p for _, _, p in chosen if p["identified"]]
+        c68 = np.mean([p["in68"] for _, _, p in chosen])
+        c95 = np.mean([p["in95"] for _, _, p in chosen])
+        b68, b95 = band(n, 0.68), band(n, 0.95)
+        flag = lambda c, b: "" if b[0] <= c <= b[1] else " **out**"
+        i68 = f"{np.mean([p['in68'] for p in ident]):.3f}" if ident else "-"
+        i95 = f"{np.mean([p['in95'] for p in ident]):.3f}" if ident else "-"
+        return (f"| {label} | {n} | {c68:.3f}{flag(c68, b68)} | [{b68[0]:.3f}, {b68[1]:.3f}] | {c95:.3f}"
+                f"{flag(c95, b95)} | [{b95[0]:.3f}, {b95[1]:.3f}] | {len(ident)} | {i68} | {i95} |")
+
+    lines.append(row("all", pairs))
+    for g in groups:
+        lines.append(row(f"`{g}`", [x for x in pairs if _group(x[1]) == g]))
+    lines += ["", "| set | variant | product | points | converged | chain in tau | min ESS | time s | held at 68% | "
+              "held at 95% | not identified | farthest (median - truth over the 68% half-width) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in sets:
+        ps = r["parameters"]
+        worst = max(ps, key=lambda n: abs(ps[n]["z"]))
+        lines.append(f"| {r['set']} | {r['variant']} | {r['product']} | {r['n_points']} | "
+                     f"{'yes' if r['converged'] else '**no**'} | {r['chain_in_tau']:.0f} | {r['min_ess']:.0f} | "
+                     f"{r['total_time_s']:.0f} | {sum(p['in68'] for p in ps.values())}/{len(ps)} | "
+                     f"{sum(p['in95'] for p in ps.values())}/{len(ps)} | "
+                     f"{', '.join(n for n, p in ps.items() if not p['identified']) or '-'} | "
+                     f"{worst} {ps[worst]['z']:+.1f} |")
+    if args.no_std:
+        lines += ["", "Estimated noise (the data's: std = sqrt((0.02 v)^2 + 0.002^2)): relative "
+                  + ", ".join(f"{r['noise_relative']:.3g}" for r in sets) + "; absolute "
+                  + ", ".join(f"{r['noise_absolute']:.2g}" for r in sets) + "."]
+    (out / "summary.md").write_text("\n".join(x for x in lines if x is not None) + "\n")
+    _figure(pairs, identified, groups, out / "coverage.png")
+    return pairs
+
+
+def _figure(pairs, identified, groups, path):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 4.2), constrained_layout=True)
+    ax, bx = fig.subplots(1, 2)
+    n = len(pairs)
+    lo, hi = zip(*(band(n, p) for p in LEVELS))
+    for axis in (ax, bx):
+        axis.plot([0, 1], [0, 1], color="0.5", lw=0.8)
+        axis.set_xlabel("nominal level of the central interval")
+        axis.set_ylabel("fraction holding the truth")
+        axis.set_xlim(0, 1)
+        axis.set_ylim(0, 1)
+    ax.fill_between(LEVELS, lo, hi, color="0.85", label=f"binomial 95% band ({n} pairs)")
+    ax.plot(LEVELS, coverage_curve([p["pit"] for _, _, p in pairs]), "k.-", label="all parameters")
+    if identified:
+        ax.plot(LEVELS, coverage_curve([p["pit"] for _, _, p in identified]), ".--", color="tab:blue",
+                label=f"identified ({len(identified)} pairs)")
+    ax.legend(fontsize=8, loc="upper left")
+    ax.set_title("all parameters")
+    for g in groups:
+        chosen = [p["pit"] for _, name, p in pairs if _group(name) == g]
+        bx.plot(LEVELS, coverage_curve(chosen), ".-", lw=0.8, ms=3, label=f"{g} ({len(chosen)})")
+    bx.legend(fontsize=7, loc="upper left", ncol=2)
+    bx.set_title("per parameter")
+    fig.savefig(path, dpi=90)
+
+
+def coverage(args):
+    if args.quick:
+        args.n, args.sim_walks, args.hi_walks = min(args.n, 2), 4096, 2048
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    done = load_records(args.out)
+    for index in parse_sets(args.sets, args.n):
+        if index in done:
+            continue
+        r = run_set(args, index)
+        done[index] = r
+        ps = r["parameters"].values()
+        print(f"set {index}: {r['variant']} on {r['product']}, held at 68% {sum(p['in68'] for p in ps)}/{len(ps)}, "
+              f"at 95% {sum(p['in95'] for p in ps)}/{len(ps)}, {r['total_time_s']:.0f} s", flush=True)
+        write_reports(args, done)
+    pairs = write_reports(args, done)
+    print(f"coverage over {len(pairs)} pairs: 68% {np.mean([p['in68'] for _, _, p in pairs]):.3f}, "
+          f"95% {np.mean([p['in95'] for _, _, p in pairs]):.3f}; wrote {args.out}/summary.md and coverage.png")
+
+
+def report(args):
     from jaxcos.cli import main
 
     out = os.path.join("/tmp", "jaxcos-bench-uncertainty")
     t0 = time.perf_counter()
-    status = main(["uncertainty", path, "--out", out, "--force"])
+    status = main(["uncertainty", args.data, "--out", out, "--force"])
     elapsed = time.perf_counter() - t0
     with open(os.path.join(out, "posterior.json"), encoding="utf-8") as fh:
         doc = json.load(fh)
-    return dict(machine=_machine(), data=path, exit_status=status, time_s=elapsed,
-                sampling_time_s=doc["record"]["sampling_time_s"], diagnostics=doc["diagnostics"],
-                mc=dict((k, doc["record"][k]) for k in ("mc_anchor_error_over_noise", "mc_model_error_over_noise")),
-                parameters=doc["parameters"])
+    result = dict(machine=machine_record(), data=args.data, exit_status=status, time_s=elapsed,
+                  fit_time_s=doc["fit"].get("time_s"), posterior_time_s=doc["record"]["time_s"],
+                  sampling_time_s=doc["record"]["sampling_time_s"], diagnostics=doc["diagnostics"],
+                  mc={k: doc["record"][k] for k in ("mc_anchor_error_over_noise", "mc_model_error_over_noise")},
+                  parameters=doc["parameters"])
+    os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
+    target = os.path.join(HERE, "results", "uncertainty_report.json")
+    with open(target, "w", encoding="utf-8") as fh:
+        json.dump(result, fh, indent=1, default=float)
+    print(f"{args.data}: exit {status} in {elapsed:.0f} s; wrote {target}")
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=("coverage", "report"))
-    parser.add_argument("--replicates", type=int, default=20)
-    parser.add_argument("--data", default="measurements/matte2.csv")
-    parser.add_argument("--hi-walks", type=int, default=8192, help="walks of the value and Jacobian at the fit")
+    sub = parser.add_subparsers(dest="what", required=True)
+    c = sub.add_parser("coverage", help="coverage of random truths")
+    c.add_argument("--n", type=int, default=40, help="number of sets (default 40)")
+    c.add_argument("--seed", type=int, default=3, help="the generator's seed (default 3)")
+    c.add_argument("--fit-seed", type=int, default=0, help="the fit's and the posterior's seed (default 0)")
+    c.add_argument("--sets", default="", help="run only these sets, e.g. 0-9,12 (default: all N)")
+    c.add_argument("--out", required=True, help="output folder (outside the repository, e.g. /tmp/coverage)")
+    c.add_argument("--no-std", action="store_true", help="remove the std columns: the posterior estimates the noise")
+    c.add_argument("--interface", action="store_true",
+                   help="truths under a top interface (bench_recovery.draw_interface): eta and alpha_s sampled too")
+    c.add_argument("--quick", action="store_true", help="2 sets at small budgets")
+    c.add_argument("--sim-walks", type=int, default=16384, help="walks of the simulated data (default 16384)")
+    c.add_argument("--sim-bounces", type=int, default=128, help="bounces of the simulated data (default 128)")
+    c.add_argument("--hi-walks", type=int, default=HI_WALKS,
+                   help="walks of the posterior's linearisation (default: uncertainty's)")
+    c.set_defaults(func=coverage)
+    r = sub.add_parser("report", help="one bundled report's cost")
+    r.add_argument("--data", default="measurements/matte2.csv")
+    r.set_defaults(func=report)
     args = parser.parse_args()
-    result = coverage(args.replicates, args.hi_walks) if args.what == "coverage" else report(args.data)
-    os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
-    suffix = f"_hi{args.hi_walks}" if args.what == "coverage" else ""
-    target = os.path.join(HERE, "results", f"uncertainty_{args.what}{suffix}.json")
-    with open(target, "w", encoding="utf-8") as fh:
-        json.dump(result, fh, indent=1, default=float)
-    print(f"wrote {target}")
+    args.func(args)
 
 
 if __name__ == "__main__":

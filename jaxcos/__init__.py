@@ -47,6 +47,7 @@ from .inference import (
     AblationResult,
     FitRecord,
     FitResult,
+    NoiseModel,
     Posterior,
     PosteriorRecord,
     ablate,

@@ -1,5 +1,6 @@
 """Posterior spreads: the sampler on a known posterior, implicit sensitivities, coverage of a truth, errors."""
 
+import dataclasses
 import functools
 import json
 import os
@@ -14,7 +15,8 @@ import jaxcos
 from jaxcos.cli import main
 from jaxcos.io._measurements import Measurements
 from jaxcos.inference._fit import parameterization
-from jaxcos.inference._posterior import PosteriorRecord, laplace, run_ensemble, sensitivity, uncertainty
+from jaxcos.inference._posterior import (NoiseModel, PosteriorRecord, estimate_noise, laplace, run_ensemble,
+                                        sensitivity, uncertainty)
 from jaxcos.report import write_uncertainty
 from jaxcos.report._posterior import _corner, _sensitivity_maps
 
@@ -139,8 +141,9 @@ RECORD_KEYS = ("labels", "variant", "n_points", "n_params", "walkers", "steps", 
                "acceptance_fraction_min", "chain_in_tau", "converged", "sampling_time_s", "time_s", "seed", "prior",
                "linear_region", "budget", "noise", "noise_scale", "slope_steps", "chi2_high_budget_at_fit",
                "chi2_high_budget_at_anchor", "mc_anchor_relative_error", "mc_anchor_error_over_noise",
-               "mc_model_error_over_noise")
-"""The keys of posterior.json's "record", in order, as they were before the record was typed."""
+               "mc_model_error_over_noise", "noise_relative", "noise_absolute", "noise_log10_sd")
+"""The keys of posterior.json's "record", in order: as they were before the record was typed, then the
+estimated noise's (``None`` for a file with std columns)."""
 
 
 @pytest.mark.slow
@@ -158,10 +161,65 @@ def test_write_uncertainty(small_posterior, tmp_path):
     assert doc["record"]["budget"] == {"hi_walks": 1024, "bounces": 48}
     assert doc["record"]["prior"]["alpha_p"] == list(post.record.prior["alpha_p"])
     assert doc["record"]["chain_in_tau"] == post.record.chain_in_tau and not post.record.interface
+    assert doc["record"]["noise"] == "file std columns" and doc["record"]["noise_relative"] is None
     report = (out / "report.md").read_text()
     assert "autocorrelation" in report and "Laplace" in report
     with pytest.raises(jaxcos.InputError, match="exists"):
         write_uncertainty(post, data, str(out))
+
+
+# --- a file without std columns ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("absolute", [0.002, 0.0])
+def test_noise_levels_are_recovered_by_maximum_likelihood(absolute):
+    """Residuals drawn with std = 0.03 |y| + absolute: the estimate is within 4 of its own Laplace sd.
+
+    Without an absolute term its level is not identified: whatever is estimated
+    adds at most a tenth to the std of the smallest value.
+    """
+    rng = np.random.default_rng(4)
+    y = np.exp(rng.uniform(np.log(1e-3), np.log(1.0), (300, 3)))
+    resid = (0.03 * y + absolute) * rng.standard_normal(y.shape)
+    model = estimate_noise(resid, y, np.zeros_like(y))
+    assert abs(np.log10(model.relative / 0.03)) < 4 * model.sd[0]
+    if absolute:
+        assert abs(np.log10(model.absolute / absolute)) < 4 * model.sd[1]
+    else:
+        assert model.absolute < 0.1 * 0.03 * y.min() or model.sd[1] > 1.0
+    # the degrees of freedom of a fit scale both levels alike
+    scaled = estimate_noise(resid, y, np.zeros_like(y), n_fitted=100)
+    assert scaled.relative / model.relative == pytest.approx(np.sqrt(900 / 800), rel=1e-6)
+    assert scaled.absolute / model.absolute == pytest.approx(np.sqrt(900 / 800), rel=1e-6)
+
+
+@pytest.fixture(scope="module")
+def no_std_posterior():
+    """The small problem's data with the std columns removed: the posterior estimates the noise."""
+    data = dataclasses.replace(_synthetic(), std=None)
+    start = jaxcos.fit(data, variant="single_lobe", walks=128, bounces=48, start=TRUTH)
+    return data, uncertainty(data, start, walkers=24, max_steps=600, hi_walks=1024, checks=4, replicas=12)
+
+
+@pytest.mark.slow
+def test_posterior_without_std_estimates_the_noise_and_covers_the_truth(no_std_posterior, tmp_path):
+    data, post = no_std_posterior
+    model = post.noise_model
+    assert isinstance(model, NoiseModel) and post.record.noise.startswith("estimated by maximum likelihood")
+    assert (post.record.noise_relative, post.record.noise_absolute) == (model.relative, model.absolute)
+    np.testing.assert_allclose(post.noise, model.std(data.values))
+    # the data's noise, sqrt((0.05 f)^2 + 0.005^2), read by the model 0.05 |y| + a: between the two forms
+    assert 0.5 * 0.05 < model.relative + model.absolute / np.median(np.abs(data.values)) < 2 * 0.05
+    truth = np.asarray(post.fit.param.to_physical(post.fit.param.from_material(TRUTH)), float)
+    mean = np.array([post.summary[n]["median"] for n in post.labels])
+    half = np.array([0.5 * (post.summary[n]["p84"] - post.summary[n]["p16"]) for n in post.labels])
+    d2 = float((truth - mean) @ np.linalg.solve(post.correlation * np.outer(half, half), truth - mean))
+    assert d2 < CHI2_BOUND, d2
+    write_uncertainty(post, data, str(tmp_path / "post"))
+    report = (tmp_path / "post" / "report.md").read_text()
+    assert "no std columns" in report and f"--noise {model.relative:.3g},{model.absolute:.3g}" in report
+    record = json.loads((tmp_path / "post" / "posterior.json").read_text())["record"]
+    assert record["noise_relative"] == model.relative and len(record["noise_log10_sd"]) == 2
 
 
 # --- a fit with a top interface ---------------------------------------------------------

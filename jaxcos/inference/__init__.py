@@ -16,7 +16,16 @@ from ._fit import (
     make_problem,
     parameterization,
 )
-from ._posterior import CHAIN_TAUS, MAX_STEPS, WALKERS, Posterior, PosteriorRecord, uncertainty
+from ._posterior import (
+    CHAIN_TAUS,
+    MAX_STEPS,
+    WALKERS,
+    NoiseModel,
+    Posterior,
+    PosteriorRecord,
+    estimate_noise,
+    uncertainty,
+)
 from ._ablate import ABLATION_BOUNCES, ABLATION_VARIANTS, ABLATION_WALKS, CSV_COLUMNS, AblationResult, ablate, check_variants
 from ._kubelka_munk import KM_N_PARAMS, KMFitRecord, KMFitResult, fit_kubelka_munk
 from ._bench import accuracy_benchmark, bsdf_problem

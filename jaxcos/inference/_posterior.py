@@ -32,14 +32,14 @@ incidence). :func:`uncertainty` runs it in stages:
    log-likelihood adds ``dv^T N dv / 2`` back.
 3. :func:`find_anchor`: the anchor starts at the fit and moves by up to
    ``ANCHORS - 1`` Gauss-Newton steps towards the optimum of the last
-   linearisation, each clipped to :data:`TRUST` difference steps per
-   parameter and kept only if the data fit the new anchor better.
+   linearisation, each with a line search under common random numbers.
 4. :func:`sample`: emcee on the linearisation within :data:`REGION`
    difference steps of the anchor, where it holds (the report says when a
    posterior reaches that edge).
 5. :func:`monte_carlo_spread` and :func:`summarise`: the remaining error of
-   ``M_hi`` at the anchor, mapped through the sensitivities, is a Monte Carlo
-   spread of the parameters that the reported intervals include.
+   ``M_hi`` at the anchor (measured by independent estimates of fewer walks,
+   scaled), mapped through the sensitivities, is a Monte Carlo spread of the
+   parameters that the reported intervals include.
 6. :func:`check_model`: the sampled model at posterior draws against
    independent high-budget estimates.
 
@@ -64,10 +64,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 from .._errors import InputError
 from ._fit import fit, make_problem
-from ..model import POSTERIOR_BUDGET, lobe_probabilities, simulate
+from ..model import POSTERIOR_BUDGET, THIN_AFTER, lobe_probabilities, simulate
 
 WALKERS = 32
 """Ensemble size: more than twice the twelve parameters of the two-lobe model (:func:`uncertainty` takes
@@ -80,14 +81,17 @@ CHAIN_TAUS = 50
 HI_WALKS = POSTERIOR_BUDGET.walks
 """Walks per incidence of the value ``M_hi(v0)`` and slopes ``J_hi(v0)`` at the anchor (bounces as in the fit;
 :data:`jaxcos.model.POSTERIOR_BUDGET`)."""
-ANCHORS = 3
+ANCHORS = 6
 """Linearisations made at most: at the fit, then after each Gauss-Newton step towards the last one's optimum
-(kept while the data fit better)."""
-TRUST = 4.0
-"""The longest Gauss-Newton step of the anchor, per parameter, in central-difference steps (two pilot sd)."""
+(:func:`find_anchor`)."""
+LINE = (1.0, 0.5, 0.25, 0.125)
+"""The fractions of a Gauss-Newton step of the anchor that :func:`find_anchor` compares."""
 REGION = 16.0
 """Half-width of the region the chain may explore around the anchor, per parameter, in central-difference
 steps (eight pilot sd, or the whole prior for a parameter the data hardly constrain)."""
+SPREAD_FRACTION = 8
+"""The Monte Carlo spread's replicas use this fraction of the linearisation's walks, and at least 128
+(:func:`monte_carlo_spread`)."""
 
 
 # --- a sampler for any batched log-density ---------------------------------------------
@@ -319,21 +323,33 @@ class Linearisation:
         slopes: ``(N, 3, P)`` ``J_hi``, central differences over ``+- step``
             under common random numbers, the mean of the two halves.
         relative_error: the median relative Monte Carlo standard error of ``value``.
-        sigma: ``(N, 3)`` the standard deviation of each residual: the
-            measurement noise and the Monte Carlo error of ``value`` in quadrature.
-        slope_noise: ``(P, P)`` ``N = D^T D / 4``, with ``D`` the whitened
-            difference of the halves' slopes: the expected part of ``J^T J``
-            that is the slopes' own noise.
-        residuals: ``(3 N,)`` the whitened residuals ``(value - y) / sigma``, channel last.
+        measured: ``(N, 3)`` the measured values.
+        noise: ``(N, 3)`` the measurement's standard deviation.
+        slope_difference: ``(N, 3, P)`` the difference of the two halves' slopes.
     """
 
     anchor: np.ndarray
     value: np.ndarray
     slopes: np.ndarray
     relative_error: float
-    sigma: np.ndarray
-    slope_noise: np.ndarray
-    residuals: np.ndarray
+    measured: np.ndarray
+    noise: np.ndarray
+    slope_difference: np.ndarray
+
+    @property
+    def mc(self):
+        """``(N, 3)``: the Monte Carlo standard error of :attr:`value`, ``relative_error * |value|``."""
+        return self.relative_error * np.abs(self.value)
+
+    @property
+    def sigma(self):
+        """``(N, 3)``: the standard deviation of each residual, the noise and :attr:`mc` in quadrature."""
+        return np.sqrt(self.noise ** 2 + self.mc ** 2)
+
+    @property
+    def residuals(self):
+        """``(3 N,)``: the whitened residuals ``(value - measured) / sigma``, channel last."""
+        return ((self.value - self.measured) / self.sigma).reshape(-1)
 
     @property
     def jac(self):
@@ -341,18 +357,110 @@ class Linearisation:
         return (self.slopes / self.sigma[..., None]).reshape(-1, self.anchor.size)
 
     @property
+    def slope_noise(self):
+        """``(P, P)``: ``N = D^T D / 4``, ``D`` the whitened :attr:`slope_difference`.
+
+        The expected part of ``J^T J`` that is the slopes' own noise: for the
+        mean of two halves, ``E[J^T J] - J_true^T J_true``.
+        """
+        d = (self.slope_difference / self.sigma[..., None]).reshape(-1, self.anchor.size)
+        return 0.25 * d.T @ d
+
+    @property
     def chi2(self):
         """The sum of the squared whitened residuals at the anchor."""
         return float(self.residuals @ self.residuals)
 
+    @property
+    def nll(self):
+        """The negative log-likelihood at the anchor, ``chi2 / 2 + sum log sigma`` (constants dropped)."""
+        return 0.5 * self.chi2 + float(np.sum(np.log(self.sigma)))
 
-def _noise(meas, fit_result):
-    """``(noise, noise_scale)``: the file's std columns, else one level for the whole file from the fit's residuals."""
-    if meas.std is not None:
-        return np.asarray(meas.std, float), None
-    resid = fit_result.model - meas.values
-    noise_scale = float(np.sqrt(np.sum(resid ** 2) / max(meas.values.size - fit_result.param.size, 1)))
-    return np.full_like(meas.values, noise_scale), noise_scale
+
+# --- the noise of a file without std columns -----------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class NoiseModel:
+    """The noise of a file without std columns: ``std = relative * |y| + absolute``, ``y`` the measured value.
+
+    The model of ``jaxcos fit --noise REL,ABS``
+    (:meth:`jaxcos.Measurements.with_noise`), its two levels estimated by
+    maximum likelihood with the material (:func:`estimate_noise`, and
+    :func:`find_anchor`, which alternates the two).
+
+    Attributes:
+        relative: the relative level (0.02 is 2% of the value).
+        absolute: the absolute level, in the file's quantity.
+        sd: ``(2,)`` the Laplace standard deviations of ``log10 relative`` and ``log10 absolute``.
+    """
+
+    relative: float
+    absolute: float
+    sd: tuple = (float("nan"), float("nan"))
+
+    def std(self, measured):
+        """``(N, 3)``: the standard deviation of each measured value."""
+        return self.relative * np.abs(measured) + self.absolute
+
+    @staticmethod
+    def bounds(measured):
+        """``(low, high)`` of ``log10`` of the levels: the relative in ``[1e-4, 1]``, the absolute within six
+        decades below the largest measured value."""
+        top = float(np.log10(np.max(np.abs(measured))))
+        return np.array([-4.0, top - 6.0]), np.array([0.0, top])
+
+
+def _noise_nll(log_levels, resid, measured, mc):
+    """The negative log-likelihood of ``resid`` under the noise model at ``log_levels`` (constants dropped).
+
+    ``sum (resid / s)^2 / 2 + sum log s`` with ``s^2 = (10^a |y| + 10^b)^2 + mc^2``;
+    ``log_levels`` is ``(..., 2)``.
+    """
+    rel, ab = 10.0 ** log_levels[..., 0, None, None], 10.0 ** log_levels[..., 1, None, None]
+    s2 = (rel * jnp.abs(measured) + ab) ** 2 + mc ** 2
+    return jnp.sum(0.5 * resid ** 2 / s2 + 0.5 * jnp.log(s2), axis=(-2, -1))
+
+
+def estimate_noise(resid, measured, mc, *, n_fitted=0):
+    """The maximum-likelihood :class:`NoiseModel` of residuals ``resid`` (model minus measured, ``(N, 3)``).
+
+    ``mc`` (``(N, 3)``) is the model's own Monte Carlo error, counted in
+    quadrature. A grid of tenth decades over :meth:`NoiseModel.bounds` picks the
+    start; BFGS (optimistix) refines it on the bounded levels. The levels are
+    then scaled by ``sqrt(M / (M - n_fitted))``, ``M = 3 N`` the values, for the
+    degrees of freedom the fitted parameters took (the maximum-likelihood
+    variance of a least-squares fit is low by that factor). ``sd``: the
+    Laplace sd of each log10 level, from the 2 x 2 Hessian at the optimum.
+    """
+    dtype = jnp.result_type(float)
+    resid, measured, mc = (jnp.asarray(np.asarray(a, float), dtype) for a in (resid, measured, mc))
+    low, high = NoiseModel.bounds(np.asarray(measured))
+    axes = [np.arange(a, b + 1e-9, 0.1) for a, b in zip(low, high)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
+    start = grid[int(np.argmin(np.asarray(_noise_nll(jnp.asarray(grid, dtype), resid, measured, mc))))]
+    lo, hi = jnp.asarray(low, dtype), jnp.asarray(high, dtype)
+
+    def to_levels(u):
+        return lo + (hi - lo) * jax.nn.sigmoid(u)
+
+    u0 = jnp.asarray(np.log((start - low + 1e-3) / (high - start + 1e-3)), dtype)
+    sol = optx.minimise(lambda u, _: _noise_nll(to_levels(u), resid, measured, mc), optx.BFGS(rtol=1e-8, atol=1e-8),
+                        u0, max_steps=200, throw=False)
+    levels = to_levels(sol.value)
+    hess = np.asarray(jax.hessian(lambda a: _noise_nll(a, resid, measured, mc))(levels), float)
+    w, u = np.linalg.eigh(0.5 * (hess + hess.T))
+    cov = (u[:, w > 0] / w[w > 0]) @ u[:, w > 0].T
+    m = resid.size
+    dof = np.sqrt(m / max(m - n_fitted, 1))
+    levels = np.asarray(levels, float)
+    return NoiseModel(relative=float(dof * 10 ** levels[0]), absolute=float(dof * 10 ** levels[1]),
+                      sd=tuple(float(x) for x in np.sqrt(np.maximum(np.diag(cov), 0.0))))
+
+
+def _with_noise_estimated(lin):
+    """``(lin, model)``: ``lin`` with its noise the maximum-likelihood model at its anchor (:func:`estimate_noise`)."""
+    model = estimate_noise(lin.value - lin.measured, lin.measured, lin.mc, n_fitted=lin.anchor.size)
+    return dataclasses.replace(lin, noise=model.std(lin.measured)), model
 
 
 def slope_steps(problem, v, noise, *, key, progress):
@@ -379,46 +487,56 @@ def linearise(problem, at, step, noise, measured, *, key):
     """
     halves = [_value_and_secants(dataclasses.replace(problem, key=k, walks=max(problem.walks // 2, 1)), at, step)
               for k in jax.random.split(key)]
-    value = 0.5 * (halves[0][0] + halves[1][0])
-    slopes = 0.5 * (halves[0][1] + halves[1][1])
     est = halves[0][2]
     rel = float(np.median(np.asarray(est.stderr) / np.maximum(np.abs(np.asarray(est.f)), 1e-12)))
-    rel /= np.sqrt(2.0)
-    sigma = np.sqrt(noise ** 2 + (rel * value) ** 2)
-    diff = ((halves[0][1] - halves[1][1]) / sigma[..., None]).reshape(-1, at.size)
-    return Linearisation(anchor=at, value=value, slopes=slopes, relative_error=rel, sigma=sigma,
-                         slope_noise=0.25 * diff.T @ diff,  # E[J^T J] - J_true^T J_true for the mean of the halves
-                         residuals=((value - measured) / sigma).reshape(-1))
+    return Linearisation(anchor=at, value=0.5 * (halves[0][0] + halves[1][0]),
+                         slopes=0.5 * (halves[0][1] + halves[1][1]), relative_error=rel / np.sqrt(2.0),
+                         measured=np.asarray(measured, float), noise=np.asarray(noise, float),
+                         slope_difference=halves[0][1] - halves[1][1])
 
 
-def find_anchor(problem, v0, step, noise, measured, *, key, anchors=ANCHORS, progress):
+def find_anchor(problem, v0, step, noise, measured, *, key, estimated_noise=False, anchors=ANCHORS, progress):
     """``(at_fit, anchored)``: the linearisations at the fit ``v0`` and at the anchor the chain samples around.
 
-    The fit's own estimate is cheap and biased towards parameters where its
-    Monte Carlo variance is small. Gauss-Newton steps on the linearisation
-    move the anchor towards its optimum, each clipped to :data:`TRUST`
-    difference steps per parameter (an unidentified direction would otherwise
-    send it across the prior) and kept off the bounds (the walkers' starting
-    ball must be inside the prior); a step is kept only if the data fit the
-    new linearisation better. The ``rank``-th linearisation is made under
-    ``fold_in(key, rank)``.
+    The fit's own estimate is cheap, and its optimum lies off the high-budget
+    model's by its key's Monte Carlo error, often by many posterior widths.
+    From the fit, Gauss-Newton steps on the last linearisation move the
+    anchor towards the optimum: each step's direction is that linearisation's,
+    its length the best of :data:`LINE` fractions of it (no parameter moving
+    more than :data:`REGION` difference steps), chosen by the chi-square of
+    estimates at the anchor and at each candidate under one fresh key. Common
+    random numbers make that comparison fair, where two linearisations under
+    different keys differ by their Monte Carlo error (an offset per
+    incidence, tens of chi-square units at 8192 walks). The search stops when
+    the anchor itself is best, or after ``anchors - 1`` steps. Candidates are
+    kept off the bounds (the walkers' starting ball must be inside the prior).
+    The ``rank``-th linearisation is made under ``fold_in(key, rank)``, the
+    line before it under ``fold_in(key, anchors + rank)``. With
+    ``estimated_noise`` (a file without std columns), each linearisation's
+    noise is the maximum-likelihood :class:`NoiseModel` at its anchor, so
+    that the anchor moves towards the joint optimum of material and noise.
     """
     low, high = problem.param.bounds()
+    margin = 1e-3 * (high - low)
+    dtype = jnp.result_type(float)
 
     def at(v, rank):
         progress(f"value and slopes at {'the fit' if rank == 0 else 'a refined anchor'} with {problem.walks} walks "
                  "per incidence")
-        return linearise(problem, v, step, noise, measured, key=jax.random.fold_in(key, rank))
+        lin = linearise(problem, v, step, noise, measured, key=jax.random.fold_in(key, rank))
+        return _with_noise_estimated(lin)[0] if estimated_noise else lin
 
     at_fit = lin = at(v0, 0)
     for rank in range(1, anchors):
         move = -laplace(lin.jac, lin.slope_noise) @ lin.jac.T @ lin.residuals
-        move = np.clip(move, -TRUST * step, TRUST * step)
-        margin = 1e-3 * (high - low)
-        trial = at(np.clip(lin.anchor + move, low + margin, high - margin), rank)
-        if trial.chi2 >= lin.chi2:
+        move = move * min(1.0, REGION / max(float(np.max(np.abs(move / step))), 1e-30))
+        points = np.stack([lin.anchor] + [np.clip(lin.anchor + s * move, low + margin, high - margin) for s in LINE])
+        line = dataclasses.replace(problem, key=jax.random.fold_in(key, anchors + rank))
+        f = problem.scale * np.asarray(_batch_estimate(line, jnp.asarray(points, dtype)).f, float)
+        best = int(np.argmin(np.sum(((f - measured) / lin.sigma) ** 2, axis=(1, 2))))
+        if best == 0:
             break
-        lin = trial
+        lin = at(points[best], rank)
     return at_fit, lin
 
 
@@ -468,12 +586,11 @@ def linear_region(lin, step, low, high):
     return np.maximum(low, lin.anchor - REGION * step), np.minimum(high, lin.anchor + REGION * step)
 
 
-def sample(lin, measured, region, width, *, seed, walkers, max_steps, progress):
+def sample(lin, region, width, *, seed, walkers, max_steps, progress):
     """``(chain, target)``: emcee on the linearisation ``lin`` within ``region``.
 
     Args:
         lin: the :class:`Linearisation` at the anchor.
-        measured: ``(N, 3)`` the measured values.
         region: ``(low, high)`` of :func:`linear_region`.
         width: ``(P,)`` rough posterior widths for the walkers' starting ball.
         seed, walkers, max_steps, progress: as in :func:`run_ensemble`.
@@ -484,7 +601,7 @@ def sample(lin, measured, region, width, *, seed, walkers, max_steps, progress):
     dtype = jnp.result_type(float)
     target = _Target(value=jnp.asarray(lin.value, dtype), slopes=jnp.asarray(lin.slopes, dtype),
                      anchor=jnp.asarray(lin.anchor, dtype), slope_noise=jnp.asarray(lin.slope_noise, dtype),
-                     measured=jnp.asarray(measured, dtype), sigma=jnp.asarray(lin.sigma, dtype),
+                     measured=jnp.asarray(lin.measured, dtype), sigma=jnp.asarray(lin.sigma, dtype),
                      low=jnp.asarray(region[0], dtype), high=jnp.asarray(region[1], dtype))
     progress(f"sampling with {walkers} walkers (emcee, differential-evolution moves)")
     log_prob = _in_batches(lambda vs: _batch_log_prob(target, vs), walkers // 2, dtype)
@@ -496,16 +613,24 @@ def sample(lin, measured, region, width, *, seed, walkers, max_steps, progress):
 def monte_carlo_spread(problem, at, sens, *, key, replicas, progress):
     """``(P, P)``: the covariance of the parameters' shift under the Monte Carlo error of the model at ``at``.
 
-    ``replicas`` independent estimates with ``problem``'s budget under
-    ``split(key, replicas)``, their deviations mapped through the
-    sensitivities ``sens`` (``(P, N, 3)``).
+    ``replicas`` independent estimates under ``split(key, replicas)`` with
+    a :data:`SPREAD_FRACTION` of ``problem``'s walks (at least 128, or all of
+    them), their deviations mapped through the sensitivities ``sens``
+    (``(P, N, 3)``), and the covariance scaled to ``problem``'s walks: the
+    estimate is a mean over independent, identically distributed walks, and
+    from 128 walks up its later steps are thinned in the same proportions
+    (:func:`jaxcos.model._walk.stages`), so its covariance is inversely
+    proportional to the walks.
     """
-    progress(f"propagating the Monte Carlo error of the anchor: {replicas} independent estimates at the anchor")
+    walks = max(problem.walks // SPREAD_FRACTION, min(problem.walks, 128))
+    progress(f"propagating the Monte Carlo error of the anchor: {replicas} independent estimates with {walks} walks "
+             "per incidence")
     v = jnp.asarray(at, jnp.result_type(float))
-    reps = np.stack([problem.scale * np.asarray(_estimate(dataclasses.replace(problem, key=k), v).f, float)
+    small = dataclasses.replace(problem, walks=walks)
+    reps = np.stack([problem.scale * np.asarray(_estimate(dataclasses.replace(small, key=k), v).f, float)
                      for k in jax.random.split(key, replicas)])
     shifts = (reps - reps.mean(axis=0)).reshape(replicas, -1) @ sens.reshape(sens.shape[0], -1).T
-    return np.atleast_2d(np.cov(shifts.T))
+    return np.atleast_2d(np.cov(shifts.T)) * walks / problem.walks
 
 
 def summarise(chain, mc_cov, labels, fit_values, lin, laplace_sd, low, high, *, rng):
@@ -549,7 +674,7 @@ def check_model(target, problem, chain, lin, noise, *, key, checks, rng, progres
     check = dataclasses.replace(problem, key=key)
     indep = np.stack([problem.scale * np.asarray(_estimate(check, jnp.asarray(d, dtype)).f) for d in draws[:checks]])
     disc2 = np.mean(((predictive[:checks] - indep) / noise) ** 2)
-    model_error = float(np.sqrt(max(disc2 - np.mean((lin.relative_error * lin.value / noise) ** 2), 0.0)))
+    model_error = float(np.sqrt(max(disc2 - np.mean((lin.mc / noise) ** 2), 0.0)))
     return predictive, model_error
 
 
@@ -571,8 +696,13 @@ class PosteriorRecord:
         prior: per label ``(low, high)``, the uniform prior's support.
         linear_region: per label ``(low, high)``, where the chain may go (:func:`linear_region`).
         hi_walks, bounces: the budget of the linearisation (``"budget"`` in JSON).
-        noise: which noise the likelihood uses (``"file std columns"`` or
-            ``"estimated from the fit's residuals"``); ``noise_scale``: the estimated level, else ``None``.
+        noise: which noise the likelihood uses: ``"file std columns"``, or
+            ``"estimated by maximum likelihood with the material: std = relative * |value| + absolute"``
+            (a file without them; :class:`NoiseModel`).
+        noise_scale: the median estimated standard deviation, else ``None``.
+        noise_relative, noise_absolute, noise_log10_sd: the estimated
+            :class:`NoiseModel` at the anchor (its levels and the Laplace sd of
+            their log10), else ``None``.
         slope_steps: per label, the central-difference step (:func:`slope_steps`).
         chi2_high_budget_at_fit, chi2_high_budget_at_anchor: the linearisations' chi-squares.
         mc_anchor_relative_error: the median relative Monte Carlo error of ``M_hi`` at the anchor.
@@ -606,6 +736,9 @@ class PosteriorRecord:
     mc_anchor_relative_error: float
     mc_anchor_error_over_noise: float
     mc_model_error_over_noise: float
+    noise_relative: float | None = None
+    noise_absolute: float | None = None
+    noise_log10_sd: list | None = None
 
     @property
     def interface(self):
@@ -628,6 +761,8 @@ class PosteriorRecord:
             mc_anchor_relative_error=self.mc_anchor_relative_error,
             mc_anchor_error_over_noise=self.mc_anchor_error_over_noise,
             mc_model_error_over_noise=self.mc_model_error_over_noise,
+            noise_relative=self.noise_relative, noise_absolute=self.noise_absolute,
+            noise_log10_sd=self.noise_log10_sd,
         )
 
 
@@ -649,6 +784,12 @@ class Posterior:
             (budgets, noise, Monte Carlo checks; :meth:`PosteriorRecord.to_json`).
         predictive: ``(D, N, 3)`` the model at ``D`` posterior draws.
         fit: the :class:`~jaxcos.FitResult` the chain started from.
+        noise: ``(N, 3)`` the measurement's standard deviation: the file's std
+            columns, or the estimated :class:`NoiseModel`'s at its maximum likelihood.
+        noise_model: that :class:`NoiseModel`, or ``None`` for a file with std columns.
+        mc_cov: ``(P, P)`` the covariance of the parameters' Monte Carlo shift
+            (:func:`monte_carlo_spread`); the intervals are percentiles of the
+            chain's draws plus such shifts.
     """
 
     labels: list
@@ -660,6 +801,9 @@ class Posterior:
     record: PosteriorRecord
     predictive: np.ndarray
     fit: object
+    noise: np.ndarray
+    mc_cov: np.ndarray
+    noise_model: NoiseModel | None = None
 
     @property
     def converged(self):
@@ -681,7 +825,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
         hi_walks: walks per incidence of the linearisation (bounces as in the fit).
         checks: posterior draws at which the sampled model is compared with
             independent high-budget estimates.
-        replicas: independent high-budget estimates at the anchor whose spread,
+        replicas: independent estimates at the anchor whose spread, scaled to ``hi_walks`` walks and
             mapped through the sensitivities, is the parameters' Monte Carlo error.
         progress: ``progress(message)`` told about each stage.
 
@@ -700,6 +844,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
     # A float32 fit can sit a rounding below a bound that float32 cannot hold (eta 1.01, alpha_s 0.005): the
     # chain's walkers start around the anchor, which must lie in the prior's support.
     v0 = np.clip(np.asarray(param.to_physical(fit_result.x), float), low, high)
+    estimated = meas.std is None
     if walkers is None:
         walkers = max(WALKERS, 2 * param.size + 2)
     if walkers < 2 * param.size + 2:
@@ -709,34 +854,44 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
     bounces = int(fit_result.record.budget.bounces)
     # (the second key is unused)
     anchor_key, _, check_key, pilot_key = jax.random.split(jax.random.key(seed), 4)
-    problem = make_problem(meas, param, key=anchor_key, walks=hi_walks, bounces=bounces, lobe_probs=probs)
-    noise, noise_scale = _noise(meas, fit_result)
+    problem = dataclasses.replace(
+        make_problem(meas, param, key=anchor_key, walks=hi_walks, bounces=bounces, lobe_probs=probs),
+        thin_after=THIN_AFTER)
+    if estimated:
+        say("estimating the noise (std = relative * |value| + absolute) by maximum likelihood at the fit")
+        noise = estimate_noise(fit_result.model - meas.values, meas.values, fit_result.model_std,
+                               n_fitted=param.size).std(meas.values)
+    else:
+        noise = np.asarray(meas.std, float)
 
     step = slope_steps(problem, v0, noise, key=pilot_key, progress=say)
-    at_fit, lin = find_anchor(problem, v0, step, noise, meas.values, key=anchor_key, progress=say)
+    at_fit, lin = find_anchor(problem, v0, step, noise, meas.values, key=anchor_key, estimated_noise=estimated,
+                              progress=say)
+    noise_model = _with_noise_estimated(lin)[1] if estimated else None
     say("Laplace covariance and sensitivities from those slopes")
     cov = laplace(lin.jac, lin.slope_noise)
     sens = sensitivity(lin.jac, lin.sigma.reshape(-1), lin.slope_noise).reshape(param.size, *meas.values.shape)
     laplace_sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     width = np.where(np.isfinite(laplace_sd) & (laplace_sd > 0), laplace_sd, 1e-3 * (high - low))
     region = linear_region(lin, step, low, high)
-    chain, target = sample(lin, meas.values, region, np.minimum(width, 0.1 * (high - low)), seed=seed,
-                           walkers=walkers, max_steps=max_steps, progress=say)
+    chain, target = sample(lin, region, np.minimum(width, 0.1 * (high - low)), seed=seed, walkers=walkers,
+                           max_steps=max_steps, progress=say)
     mc_cov = monte_carlo_spread(problem, lin.anchor, sens, key=check_key, replicas=replicas, progress=say)
     rng = np.random.default_rng(seed + 1)
     summary, corr = summarise(chain, mc_cov, param.labels(), v0, lin, laplace_sd, low, high, rng=rng)
-    predictive, model_error = check_model(target, problem, chain, lin, noise, key=check_key, checks=checks, rng=rng,
-                                          progress=say)
+    predictive, model_error = check_model(target, problem, chain, lin, lin.noise, key=check_key, checks=checks,
+                                          rng=rng, progress=say)
 
-    record = _record(meas, param, chain, lin, at_fit, region=region, step=step, noise_scale=noise_scale,
-                     hi_walks=hi_walks, bounces=bounces, seed=seed, model_error=model_error, noise=noise,
+    record = _record(meas, param, chain, lin, at_fit, region=region, step=step, noise_model=noise_model,
+                     hi_walks=hi_walks, bounces=bounces, seed=seed, model_error=model_error,
                      seconds=time.perf_counter() - t0)
     return Posterior(labels=param.labels(), summary=summary, correlation=corr, chain=chain, laplace_cov=cov,
-                     sensitivity=sens, record=record, predictive=predictive, fit=fit_result)
+                     sensitivity=sens, record=record, predictive=predictive, fit=fit_result, noise=lin.noise,
+                     mc_cov=mc_cov, noise_model=noise_model)
 
 
-def _record(meas, param, chain, lin, at_fit, *, region, step, noise_scale, hi_walks, bounces, seed, model_error,
-            noise, seconds):
+def _record(meas, param, chain, lin, at_fit, *, region, step, noise_model, hi_walks, bounces, seed, model_error,
+            seconds):
     """The :attr:`Posterior.record`: sizes, chain diagnostics, prior and region, budget, noise and Monte Carlo checks."""
     labels = param.labels()
     low, high = param.bounds()
@@ -750,11 +905,15 @@ def _record(meas, param, chain, lin, at_fit, *, region, step, noise_scale, hi_wa
         prior={name: (float(a), float(b)) for name, a, b in zip(labels, low, high)},
         linear_region={name: (float(a), float(b)) for name, a, b in zip(labels, *region)},
         hi_walks=int(hi_walks), bounces=int(bounces),
-        noise="file std columns" if noise_scale is None else "estimated from the fit's residuals",
-        noise_scale=noise_scale,
+        noise="file std columns" if noise_model is None else
+        "estimated by maximum likelihood with the material: std = relative * |value| + absolute",
+        noise_scale=None if noise_model is None else float(np.median(lin.noise)),
         slope_steps={name: float(h) for name, h in zip(labels, step)},
         chi2_high_budget_at_fit=at_fit.chi2, chi2_high_budget_at_anchor=lin.chi2,
         mc_anchor_relative_error=lin.relative_error,
-        mc_anchor_error_over_noise=float(np.median(lin.relative_error * lin.value / noise)),
+        mc_anchor_error_over_noise=float(np.median(lin.mc / lin.noise)),
         mc_model_error_over_noise=model_error,
+        noise_relative=None if noise_model is None else noise_model.relative,
+        noise_absolute=None if noise_model is None else noise_model.absolute,
+        noise_log10_sd=None if noise_model is None else list(noise_model.sd),
     )

@@ -24,6 +24,7 @@ from ._budget import (
 )
 from ._ranges import BASE_ALBEDO_RANGE, INTERFACE_RANGES, LAYER_RANGES, PHI_RANGE, RANGES, Range
 from ._walk import (
+    THIN_AFTER,
     Estimate,
     Query,
     boundary_probability,

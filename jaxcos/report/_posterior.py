@@ -66,6 +66,26 @@ def _laplace_notes(post):
     return notes
 
 
+def _noise_words(post):
+    """How the likelihood's noise was set; for an estimated one, its levels and their 68% intervals."""
+    model = post.noise_model
+    if model is None:
+        return post.record.noise
+
+    def level(name, value, sd):
+        if not np.isfinite(sd) or sd > 1.0:  # a flat likelihood: more than a decade either way
+            return f"{name} {value:.3g}, not identified by the data (its log10 has a Laplace sd of {sd:.2g})"
+        return f"{name} {value:.3g} (68%: [{value * 10 ** -sd:.3g}, {value * 10 ** sd:.3g}])"
+
+    return ("the file has no std columns, so std = relative x |value| + absolute, estimated by maximum likelihood "
+            f"with the material: {level('relative', model.relative, model.sd[0])}, "
+            f"{level('absolute', model.absolute, model.sd[1])}; "
+            f"`jaxcos fit --noise {model.relative:.3g},{model.absolute:.3g}` weighs a fit by it. The estimate "
+            "holds whatever the model cannot fit as well as the instrument's noise: where it is well above what "
+            "the instrument is known to reach, the model misses the data, and the intervals are those of its best "
+            "approximation, not of the material")
+
+
 def uncertainty_report(post, meas):
     """The human-readable ``report.md`` of a :class:`Posterior`."""
     r = post.record
@@ -77,8 +97,7 @@ def uncertainty_report(post, meas):
         + (" under a rough dielectric top interface (its index `eta` and roughness `alpha_s` sampled with the "
            "rest; docs/model.md section 3a)" if r.interface else "")
         + f", {r.n_points} points x 3 channels, {r.n_params} parameters, "
-        f"uniform priors on their physical ranges, Gaussian likelihood ({r.noise}"
-        + (f": {r.noise_scale:.4g}" if r.noise_scale is not None else "") + ").",
+        f"uniform priors on their physical ranges, Gaussian likelihood ({_noise_words(post)}).",
         "",
     ]
     if not post.converged:
@@ -166,12 +185,13 @@ def _predictive(post, meas, path, slices=4):
         to = meas.theta_o[sel]
         for ch, colour in enumerate(("tab:red", "tab:green", "tab:blue")):
             ax.fill_between(to, lo[sel, ch], hi[sel, ch], color=colour, alpha=0.3, lw=0)
-            err = None if meas.std is None else meas.std[sel, ch]
+            err = post.noise[sel, ch]
             ax.errorbar(to, meas.values[sel, ch], yerr=err, fmt=".", color=colour, ms=3, lw=0.8)
         ax.set_title(f"theta_i = {ti:g} deg")
         ax.set_xlabel("theta_o (deg)")
         ax.set_ylabel(unit)
-    fig.suptitle("measured (points, 1 std) and 95% band of the posterior model")
+    fig.suptitle("measured (points, 1 std" + ("" if meas.std is not None else ", estimated") +
+                 ") and 95% band of the posterior model")
     fig.savefig(path, dpi=90)
 
 
@@ -179,8 +199,8 @@ def _sensitivity_maps(post, meas, path):
     from matplotlib.figure import Figure
 
     rows, cols = np.unique(meas.theta_i), np.unique(meas.theta_o)
-    std = meas.std if meas.std is not None else np.full_like(meas.values, post.record.noise_scale)
-    n = len(post.labels)
+    std = post.noise
+    n = post.sensitivity.shape[0]  # the material's parameters (not the noise levels)
     ncol = min(n, 4)
     fig = Figure(figsize=(4 * ncol, 2.8 * -(-n // ncol)), constrained_layout=True)
     axes = np.atleast_1d(fig.subplots(-(-n // ncol), ncol)).ravel()
