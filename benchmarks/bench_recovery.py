@@ -122,12 +122,15 @@ def simulate_set(material, theta_i, theta_o, key, walks, bounces):
     return np.pi * np.mean(means, axis=0), np.pi * np.sqrt(np.sum(np.square(errors), axis=0)) / k
 
 
-def make_set(seed, index, sim_walks, sim_bounces, interface=False):
+def make_set(seed, index, sim_walks, sim_bounces, interface=False, mc_in_std=False):
     """Set ``index`` of generator ``seed``: ``(measurements, truth, variant, product, generator)``.
 
     The generator (``default_rng([seed, index])``) is returned for the later draws
     of the set (its check keys), so that they too depend on the set alone. With
-    ``interface``, the truth has a top interface (:func:`draw_interface`).
+    ``interface``, the truth has a top interface (:func:`draw_interface`). With
+    ``mc_in_std``, the std columns also hold the simulation's own Monte Carlo
+    error, ``sqrt(s^2 + mc^2)``: the value's deviation from the truth's curve,
+    which a coverage study needs (the noise drawn is still ``s``).
     """
     rng = np.random.default_rng([seed, index])
     truth, variant = draw_truth(rng)
@@ -150,7 +153,10 @@ def make_set(seed, index, sim_walks, sim_bounces, interface=False):
                        f"{'NEE' if interface else 'MIS'} connection; MC error / noise std: "
                        f"median {np.median(ratio):.2f}, max {ratio.max():.2f}",
     }
-    meas = Measurements(theta_i=theta_i, theta_o=theta_o, phi_o=np.zeros_like(theta_i), values=values, std=s,
+    if mc_in_std:
+        metadata["std"] = "sqrt(s^2 + mc^2): the noise and the simulation's Monte Carlo error"
+    std = np.sqrt(s ** 2 + mc ** 2) if mc_in_std else s
+    meas = Measurements(theta_i=theta_i, theta_o=theta_o, phi_o=np.zeros_like(theta_i), values=values, std=std,
                         metadata=metadata, path=f"set_{index:03d}.csv")
     return meas, truth, variant, product, rng, float(np.median(ratio))
 

@@ -6,7 +6,10 @@ entries: ``c_d``, ``albedo_d[0..2]``, ..., ``theta_p`` in degrees, and ``eta``,
 
     p(v | y) ∝ U(v; bounds) exp(-1/2 sum ((m(v) - y) / sigma)^2)
 
-with a uniform prior on the physical ranges and a Gaussian likelihood. The
+with a uniform prior on the physical ranges and a Gaussian likelihood:
+``sigma`` is the file's std, or for a file without std columns the
+:class:`NoiseModel` ``relative * |y| + absolute`` with its two levels
+estimated by maximum likelihood with the material. The
 model ``m`` is a Monte Carlo estimate, and with a fixed key its error is not
 noise the chain can average: the expected loss of a fixed-key estimate is the
 true loss plus the estimate's variance, so its error acts as a penalty that
