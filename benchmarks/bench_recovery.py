@@ -248,6 +248,14 @@ def append_record(out, record):
         fh.write(json.dumps(record) + "\n")
 
 
+def pending_sets(args):
+    """``(done, todo)``: the records already in ``OUT/sets.jsonl`` (made if absent) and the sets of ``--n`` and
+    ``--sets`` still to run (none with ``--report-only``)."""
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    done = load_records(args.out)
+    return done, [] if args.report_only else [i for i in parse_sets(args.sets, args.n) if i not in done]
+
+
 def load_records(out):
     """``{set: record}`` of ``OUT/sets.jsonl`` (empty when there is none): the sets already run."""
     path = Path(out) / "sets.jsonl"
@@ -334,11 +342,8 @@ def main():
     args = parser.parse_args()
     if args.quick:
         args.n, args.sim_walks, args.eval_walks = min(args.n, 2), 8192, 4096
-    Path(args.out).mkdir(parents=True, exist_ok=True)
-    done = load_records(args.out)
-    for index in [] if args.report_only else parse_sets(args.sets, args.n):
-        if index in done:
-            continue
+    done, todo = pending_sets(args)
+    for index in todo:
         r = run_set(args, index)
         done[index] = r
         print(f"set {index}: {r['variant']} on {r['product']}, fit {r['fit_chi2']:.2f} truth {r['truth_chi2']:.2f} "

@@ -51,7 +51,7 @@ sys.path.insert(0, HERE)
 import jaxcos  # noqa: E402
 from jaxcos.inference._bench import machine_record  # noqa: E402
 from jaxcos.inference._posterior import HI_WALKS  # noqa: E402
-from bench_recovery import append_record, load_records, make_set, parse_sets  # noqa: E402
+from bench_recovery import append_record, make_set, pending_sets  # noqa: E402
 
 LEVELS = np.linspace(0.05, 0.95, 19)
 """Nominal levels of the coverage curve (central intervals)."""
@@ -229,11 +229,8 @@ def _figure(pairs, identified, groups, path):
 def coverage(args):
     if args.quick:
         args.n, args.sim_walks, args.hi_walks = min(args.n, 2), 8192, 2048
-    Path(args.out).mkdir(parents=True, exist_ok=True)
-    done = load_records(args.out)
-    for index in [] if args.report_only else parse_sets(args.sets, args.n):
-        if index in done:
-            continue
+    done, todo = pending_sets(args)
+    for index in todo:
         r = run_set(args, index)
         done[index] = r
         ps = r["parameters"].values()
