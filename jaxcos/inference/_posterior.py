@@ -329,6 +329,8 @@ class Linearisation:
         measured: ``(N, 3)`` the measured values.
         noise: ``(N, 3)`` the measurement's standard deviation.
         slope_difference: ``(N, 3, P)`` the difference of the two halves' slopes.
+        noise_model: the :class:`NoiseModel` that ``noise`` comes from, where it
+            was estimated at this anchor (:func:`find_anchor`), else ``None``.
     """
 
     anchor: np.ndarray
@@ -338,6 +340,7 @@ class Linearisation:
     measured: np.ndarray
     noise: np.ndarray
     slope_difference: np.ndarray
+    noise_model: "NoiseModel | None" = None
 
     @property
     def mc(self):
@@ -373,11 +376,6 @@ class Linearisation:
     def chi2(self):
         """The sum of the squared whitened residuals at the anchor."""
         return float(self.residuals @ self.residuals)
-
-    @property
-    def nll(self):
-        """The negative log-likelihood at the anchor, ``chi2 / 2 + sum log sigma`` (constants dropped)."""
-        return 0.5 * self.chi2 + float(np.sum(np.log(self.sigma)))
 
 
 # --- the noise of a file without std columns -----------------------------------------
@@ -461,9 +459,9 @@ def estimate_noise(resid, measured, mc, *, n_fitted=0):
 
 
 def _with_noise_estimated(lin):
-    """``(lin, model)``: ``lin`` with its noise the maximum-likelihood model at its anchor (:func:`estimate_noise`)."""
+    """``lin`` with its noise the maximum-likelihood :class:`NoiseModel` at its anchor (:func:`estimate_noise`)."""
     model = estimate_noise(lin.value - lin.measured, lin.measured, lin.mc, n_fitted=lin.anchor.size)
-    return dataclasses.replace(lin, noise=model.std(lin.measured)), model
+    return dataclasses.replace(lin, noise=model.std(lin.measured), noise_model=model)
 
 
 def slope_steps(problem, v, noise, *, key, progress):
@@ -527,7 +525,7 @@ def find_anchor(problem, v0, step, noise, measured, *, key, estimated_noise=Fals
         progress(f"value and slopes at {'the fit' if rank == 0 else 'a refined anchor'} with {problem.walks} walks "
                  "per incidence")
         lin = linearise(problem, v, step, noise, measured, key=jax.random.fold_in(key, rank))
-        return _with_noise_estimated(lin)[0] if estimated_noise else lin
+        return _with_noise_estimated(lin) if estimated_noise else lin
 
     at_fit = lin = at(v0, 0)
     for rank in range(1, anchors):
@@ -660,7 +658,7 @@ def summarise(chain, mc_cov, labels, fit_values, lin, laplace_sd, low, high, *, 
     return summary, corr
 
 
-def check_model(target, problem, chain, lin, noise, *, key, checks, rng, progress):
+def check_model(target, problem, chain, lin, *, key, checks, rng, progress):
     """``(predictive, model_error)``: the sampled model at posterior draws, and its error against independent estimates.
 
     ``predictive`` is ``(D, N, 3)`` at ``max(checks, 64)`` draws (at most the
@@ -676,8 +674,8 @@ def check_model(target, problem, chain, lin, noise, *, key, checks, rng, progres
     predictive = _model_in_batches(target, chain.walkers // 2)(draws)
     check = dataclasses.replace(problem, key=key)
     indep = np.stack([problem.scale * np.asarray(_estimate(check, jnp.asarray(d, dtype)).f) for d in draws[:checks]])
-    disc2 = np.mean(((predictive[:checks] - indep) / noise) ** 2)
-    model_error = float(np.sqrt(max(disc2 - np.mean((lin.mc / noise) ** 2), 0.0)))
+    disc2 = np.mean(((predictive[:checks] - indep) / lin.noise) ** 2)
+    model_error = float(np.sqrt(max(disc2 - np.mean((lin.mc / lin.noise) ** 2), 0.0)))
     return predictive, model_error
 
 
@@ -870,7 +868,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
     step = slope_steps(problem, v0, noise, key=pilot_key, progress=say)
     at_fit, lin = find_anchor(problem, v0, step, noise, meas.values, key=anchor_key, estimated_noise=estimated,
                               progress=say)
-    noise_model = _with_noise_estimated(lin)[1] if estimated else None
+    noise_model = lin.noise_model
     say("Laplace covariance and sensitivities from those slopes")
     cov = laplace(lin.jac, lin.slope_noise)
     sens = sensitivity(lin.jac, lin.sigma.reshape(-1), lin.slope_noise).reshape(param.size, *meas.values.shape)
@@ -882,8 +880,8 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
     mc_cov = monte_carlo_spread(problem, lin.anchor, sens, key=check_key, replicas=replicas, progress=say)
     rng = np.random.default_rng(seed + 1)
     summary, corr = summarise(chain, mc_cov, param.labels(), v0, lin, laplace_sd, low, high, rng=rng)
-    predictive, model_error = check_model(target, problem, chain, lin, lin.noise, key=check_key, checks=checks,
-                                          rng=rng, progress=say)
+    predictive, model_error = check_model(target, problem, chain, lin, key=check_key, checks=checks, rng=rng,
+                                          progress=say)
 
     record = _record(meas, param, chain, lin, at_fit, region=region, step=step, noise_model=noise_model,
                      hi_walks=hi_walks, bounces=bounces, seed=seed, model_error=model_error,
