@@ -85,6 +85,7 @@ def run_set(args, index):
                           in68=bool(s["p16"] <= true[i] <= s["p84"]),
                           in95=bool(s["p2.5"] <= true[i] <= s["p97.5"]),
                           identified=bool(s["p97.5"] - s["p2.5"] < 0.5 * (high[i] - low[i])),
+                          unresolved=name in post.record.unresolved,
                           z=float((s["median"] - true[i]) / max(0.5 * (s["p84"] - s["p16"]), 1e-300)))
     record = dict(
         set=index, seed=args.seed, fit_seed=args.fit_seed, variant=variant, product=product, no_std=args.no_std,

@@ -15,8 +15,8 @@ import jaxcos
 from jaxcos.cli import main
 from jaxcos.io._measurements import Measurements
 from jaxcos.inference._fit import parameterization
-from jaxcos.inference._posterior import (NoiseModel, PosteriorRecord, estimate_noise, laplace, run_ensemble,
-                                        sensitivity, uncertainty)
+from jaxcos.inference._posterior import (Linearisation, NoiseModel, PosteriorRecord, estimate_noise, laplace,
+                                        run_ensemble, sensitivity, slope_spread, uncertainty, widen_steps)
 from jaxcos.report import write_uncertainty
 from jaxcos.report._posterior import _corner, _sensitivity_maps
 
@@ -68,6 +68,68 @@ def test_laplace_and_sensitivity_of_a_linear_least_squares_problem():
         dy = np.zeros_like(y)
         dy[m] = eps
         np.testing.assert_allclose((solve(y + dy) - solve(y)) / eps, sens[:, m], rtol=1e-6, atol=1e-9)
+
+
+def _noisy_linearisation(noise_scale, seed=0, n=30, p=3):
+    """A :class:`Linearisation` whose slopes of parameter 0 differ between halves by ``noise_scale`` per value."""
+    rng = np.random.default_rng(seed)
+    slopes = rng.normal(size=(n, 3, p))
+    difference = np.zeros_like(slopes)
+    difference[..., 0] = noise_scale * rng.normal(size=(n, 3))
+    return Linearisation(anchor=np.zeros(p), value=np.zeros((n, 3)), slopes=slopes, relative_error=0.0,
+                         measured=np.zeros((n, 3)), noise=np.ones((n, 3)), slope_difference=difference)
+
+
+def test_slope_noise_is_never_more_than_the_slopes():
+    """``J^T J - N`` is positive semi-definite; where the raw noise is smaller than the slopes it is kept whole."""
+    quiet, loud = _noisy_linearisation(0.2), _noisy_linearisation(6.0)
+    np.testing.assert_allclose(quiet.slope_noise, quiet.raw_slope_noise, atol=1e-10)
+    jtj = loud.jac.T @ loud.jac
+    assert loud.raw_slope_noise[0, 0] > jtj[0, 0]
+    w = np.linalg.eigvalsh(jtj - loud.slope_noise)
+    assert np.min(w) > -1e-9 * np.max(w) and np.sum(w < 1e-9 * np.max(w)) == 1
+
+
+def test_noisy_slopes_get_longer_steps():
+    """Only the parameter whose slopes are mostly noise gets a longer step, by ``4 sqrt(rho)``, within the cap."""
+    lin = _noisy_linearisation(2.0)
+    rho = lin.noise_dominated()
+    assert rho[0] > 0.25 and np.all(rho[1:] == 0)
+    step = np.array([1e-3, 1e-3, 1e-3])
+    np.testing.assert_allclose(widen_steps(lin, step, np.ones(3)), [min(4e-3 * np.sqrt(rho[0]), 8e-3), 1e-3, 1e-3])
+    np.testing.assert_allclose(widen_steps(lin, step, np.full(3, 2e-3)), [2e-3, 1e-3, 1e-3])
+
+
+def test_slope_spread_is_the_centres_covariance():
+    """Averaged over draws of the slopes' error, :func:`slope_spread` is the covariance of ``-H^+ dJ^T r``.
+
+    The errors of one incidence are correlated (a shared part and a part of
+    their own), as an incidence's values share their walks. The tolerance is
+    four standard errors of the empirical variance and of the estimates' mean.
+    """
+    rng = np.random.default_rng(5)
+    n, p, draws = 24, 2, 4000
+    incidence = np.repeat(np.arange(4), 6)
+    slopes = rng.normal(size=(n, 3, p))
+    residuals = rng.normal(size=(n, 3))
+    h = np.linalg.inv(np.einsum("ncp,ncq->pq", slopes, slopes))
+
+    def error():
+        shared = rng.normal(size=(4, 1, p))[incidence]
+        return 0.05 * (shared + rng.normal(size=(n, 3, p)))
+
+    shifts, estimates = [], []
+    for _ in range(draws):
+        e0, e1 = error(), error()
+        lin = Linearisation(anchor=np.zeros(p), value=residuals, slopes=slopes + 0.5 * (e0 + e1),
+                            relative_error=0.0, measured=np.zeros((n, 3)), noise=np.ones((n, 3)),
+                            slope_difference=e0 - e1)
+        shifts.append(-h @ np.einsum("ncp,nc->p", 0.5 * (e0 + e1), residuals))
+        estimates.append(np.diag(slope_spread(lin, incidence)))
+    shifts, estimates = np.array(shifts), np.array(estimates)
+    empirical = shifts.var(axis=0)
+    se = np.sqrt(2 / draws) * empirical + estimates.std(axis=0) / np.sqrt(draws)
+    assert np.all(np.abs(estimates.mean(axis=0) - empirical) < 4 * se)
 
 
 # --- a small jaxcos problem with a known truth ---------------------------------------
@@ -141,9 +203,9 @@ RECORD_KEYS = ("labels", "variant", "n_points", "n_params", "walkers", "steps", 
                "acceptance_fraction_min", "chain_in_tau", "converged", "sampling_time_s", "time_s", "seed", "prior",
                "linear_region", "budget", "noise", "noise_scale", "slope_steps", "chi2_high_budget_at_fit",
                "chi2_high_budget_at_anchor", "mc_anchor_relative_error", "mc_anchor_error_over_noise",
-               "mc_model_error_over_noise", "noise_relative", "noise_absolute", "noise_log10_sd")
+               "mc_model_error_over_noise", "noise_relative", "noise_absolute", "noise_log10_sd", "unresolved")
 """The keys of posterior.json's "record", in order: as they were before the record was typed, then the
-estimated noise's (``None`` for a file with std columns)."""
+estimated noise's (``None`` for a file with std columns), then the parameters the slopes do not resolve."""
 
 
 @pytest.mark.slow
@@ -303,13 +365,17 @@ def test_report_says_when_the_chain_reaches_the_edge_of_the_linearisation():
     row = dict(p16_noise_only=0.2, p84_noise_only=0.3, laplace_sd=0.05)
     summary = {"inside": dict(row, **{"p2.5": 0.15, "p97.5": 0.35}),
                "at_region": dict(row, **{"p2.5": 0.15, "p97.5": 0.4}),
-               "at_prior": dict(row, **{"p2.5": 0.0, "p97.5": 0.35})}
+               "at_prior": dict(row, **{"p2.5": 0.0, "p97.5": 0.35}),
+               "unresolved": dict(row, **{"p2.5": 0.0, "p97.5": 0.4})}
     record = SimpleNamespace(prior={n: (0.0, 1.0) for n in summary},
-                             linear_region={"inside": (0.0, 0.6), "at_region": (0.0, 0.4), "at_prior": (0.0, 0.6)})
+                             linear_region={"inside": (0.0, 0.6), "at_region": (0.0, 0.4), "at_prior": (0.0, 0.6),
+                                            "unresolved": (0.0, 0.4)},
+                             unresolved=["unresolved"])
     notes = _laplace_notes(SimpleNamespace(summary=summary, record=record))
-    assert len(notes) == 2
+    assert len(notes) == 3
     assert notes[0].startswith("`at_region`") and "linearised" in notes[0]
     assert notes[1].startswith("`at_prior`") and "prior" in notes[1]
+    assert notes[2].startswith("`unresolved`") and "Monte Carlo noise" in notes[2]
 
 
 def test_a_chain_that_never_moved_gets_its_length_as_autocorrelation_time():

@@ -32,16 +32,19 @@ incidence). :func:`uncertainty` runs it in stages:
    (``docs/derivatives.md``). ``J_hi`` is the mean of two halves under
    independent keys: ``N = D^T D / 4``, with ``D`` their whitened difference,
    is the expected share of ``J^T J`` that is the slopes' own noise, and the
-   log-likelihood adds ``dv^T N dv / 2`` back.
-3. :func:`find_anchor`: the anchor starts at the fit and moves by up to
+   log-likelihood adds ``dv^T N dv / 2`` back, no more than ``J^T J`` holds
+   in any direction (:attr:`Linearisation.slope_noise`).
+3. :func:`find_anchor`: where the slopes at the fit are mostly noise, their
+   steps are lengthened (:func:`widen_steps`); the anchor starts at the fit and moves by up to
    ``ANCHORS - 1`` Gauss-Newton steps towards the optimum of the last
    linearisation, each with a line search under common random numbers.
 4. :func:`sample`: emcee on the linearisation within :data:`REGION`
    difference steps of the anchor, where it holds (the report says when a
    posterior reaches that edge).
-5. :func:`monte_carlo_spread` and :func:`summarise`: the remaining error of
-   ``M_hi`` at the anchor (measured by independent estimates of fewer walks,
-   scaled), mapped through the sensitivities, is a Monte Carlo spread of the
+5. :func:`monte_carlo_spread`, :func:`slope_spread` and :func:`summarise`:
+   the remaining error of ``M_hi`` at the anchor (measured by independent
+   estimates of fewer walks, scaled), mapped through the sensitivities, and
+   that of ``J_hi`` acting on the residuals, are a Monte Carlo spread of the
    parameters that the reported intervals include.
 6. :func:`check_model`: the sampled model at posterior draws against
    independent high-budget estimates.
@@ -92,6 +95,9 @@ LINE = (1.0, 0.5, 0.25, 0.125)
 REGION = 16.0
 """Half-width of the region the chain may explore around the anchor, per parameter, in central-difference
 steps (eight pilot sd, or the whole prior for a parameter the data hardly constrain)."""
+SLOPE_NOISE = 0.25
+"""The share of a parameter's ``(J^T J)_ii`` that may be its slopes' own noise at the fit before
+:func:`find_anchor` lengthens its difference step (:func:`widen_steps`)."""
 SPREAD_FRACTION = 8
 """The Monte Carlo spread's replicas use this fraction of the linearisation's walks, and at least 128
 (:func:`monte_carlo_spread`)."""
@@ -363,7 +369,7 @@ class Linearisation:
         return (self.slopes / self.sigma[..., None]).reshape(-1, self.anchor.size)
 
     @property
-    def slope_noise(self):
+    def raw_slope_noise(self):
         """``(P, P)``: ``N = D^T D / 4``, ``D`` the whitened :attr:`slope_difference`.
 
         The expected part of ``J^T J`` that is the slopes' own noise: for the
@@ -371,6 +377,25 @@ class Linearisation:
         """
         d = (self.slope_difference / self.sigma[..., None]).reshape(-1, self.anchor.size)
         return 0.25 * d.T @ d
+
+    @property
+    def slope_noise(self):
+        """``(P, P)``: :attr:`raw_slope_noise` where it is smaller than ``J^T J``, all of ``J^T J`` where it is not.
+
+        ``J^T J - slope_noise`` is the positive part of ``J^T J - N`` (its
+        negative eigenvalues set to 0): along a direction where the slopes'
+        noise exceeds them, the linearisation resolves no information, and the
+        chain's log-density is flat there (within the region) rather than
+        rising away from the anchor.
+        """
+        jtj = self.jac.T @ self.jac
+        w, u = np.linalg.eigh(0.5 * ((jtj - self.raw_slope_noise) + (jtj - self.raw_slope_noise).T))
+        return jtj - (u * np.maximum(w, 0.0)) @ u.T
+
+    def noise_dominated(self):
+        """``(P,)``: each parameter's share of slope noise, ``N_ii / (J^T J)_ii`` (:attr:`raw_slope_noise`)."""
+        jtj = np.einsum("mp,mp->p", self.jac, self.jac)
+        return np.diag(self.raw_slope_noise) / np.maximum(jtj, 1e-300)
 
     @property
     def chi2(self):
@@ -473,11 +498,32 @@ def slope_steps(problem, v, noise, *, key, progress):
     """
     pilot_walks = max(problem.walks // 8, 1)
     progress(f"slopes at the fit by central differences: a pilot with {pilot_walks} walks per incidence")
-    low, high = problem.param.bounds()
     first = _first_steps(problem.param, v)
     _, jac, _ = _value_and_secants(dataclasses.replace(problem, key=key, walks=pilot_walks), v, first)
     pilot_sd = np.sqrt(np.maximum(np.diag(laplace((jac / noise[..., None]).reshape(-1, first.size))), 0.0))
-    return np.clip(0.5 * pilot_sd, 0.01 * first, np.minimum(10 * first, 0.25 * (high - low)))
+    return np.clip(0.5 * pilot_sd, 0.01 * first, _longest_steps(problem.param, v))
+
+
+def _longest_steps(param, v):
+    """The longest central-difference steps: 10 times :func:`_first_steps`, and a quarter of each range."""
+    low, high = param.bounds()
+    return np.minimum(10 * _first_steps(param, v), 0.25 * (high - low))
+
+
+def widen_steps(lin, step, longest):
+    """Longer central-difference steps where the slopes of ``lin`` are mostly their own Monte Carlo noise.
+
+    A pilot's Laplace width counts the noise of its slopes as information, so
+    a parameter whose slopes are noisy gets a short step, and a short secant is
+    noisier still. Where the noise's share ``rho = N_ii / (J^T J)_ii``
+    (:meth:`Linearisation.noise_dominated`) exceeds :data:`SLOPE_NOISE`, the
+    step grows by ``4 sqrt(rho)`` (at most 8-fold, and to at most ``longest``):
+    under common random numbers a secant's noise falls as ``1 / step`` where
+    the estimate is smooth, and the share then falls to about 1/16.
+    """
+    rho = lin.noise_dominated()
+    factor = np.where(rho > SLOPE_NOISE, np.minimum(4 * np.sqrt(rho), 8.0), 1.0)
+    return np.maximum(step, np.minimum(step * factor, longest))
 
 
 def linearise(problem, at, step, noise, measured, *, key):
@@ -497,9 +543,11 @@ def linearise(problem, at, step, noise, measured, *, key):
 
 
 def find_anchor(problem, v0, step, noise, measured, *, key, estimated_noise=False, anchors=ANCHORS, progress):
-    """``(at_fit, anchored)``: the linearisations at the fit ``v0`` and at the anchor the chain samples around.
+    """``(at_fit, anchored, step)``: the linearisations at the fit ``v0`` and at the chain's anchor, and their steps.
 
-    The fit's own estimate is cheap, and its optimum lies off the high-budget
+    Where the slopes at the fit are mostly their own noise, the steps are
+    lengthened once (:func:`widen_steps`) and the fit's linearisation made
+    again with them under the same key. The fit's own estimate is cheap, and its optimum lies off the high-budget
     model's by its key's Monte Carlo error, often by many posterior widths.
     From the fit, Gauss-Newton steps on the last linearisation move the
     anchor towards the optimum: each step's direction is that linearisation's,
@@ -528,6 +576,12 @@ def find_anchor(problem, v0, step, noise, measured, *, key, estimated_noise=Fals
         return _with_noise_estimated(lin) if estimated_noise else lin
 
     at_fit = lin = at(v0, 0)
+    wider = widen_steps(lin, step, _longest_steps(problem.param, v0))
+    if np.any(wider > step):
+        progress("longer difference steps for " + ", ".join(
+            name for name, a, b in zip(problem.param.labels(), step, wider) if b > a))
+        step = wider
+        at_fit = lin = at(v0, 0)
     for rank in range(1, anchors):
         move = -laplace(lin.jac, lin.slope_noise) @ lin.jac.T @ lin.residuals
         move = move * min(1.0, REGION / max(float(np.max(np.abs(move / step))), 1e-30))
@@ -538,21 +592,25 @@ def find_anchor(problem, v0, step, noise, measured, *, key, estimated_noise=Fals
         if best == 0:
             break
         lin = at(points[best], rank)
-    return at_fit, lin
+    return at_fit, lin, step
 
 
 class _Target(eqx.Module):
-    """The linearised model and the Gaussian log-likelihood, with a uniform prior on ``[low, high]``.
+    """The linearised model and its Gaussian log-likelihood, with a uniform prior on ``[low, high]``.
 
-    The log-density adds back ``dv^T N dv / 2``, the slopes' own noise in ``J^T J``.
+    ``-1/2 |r + J d|^2 + 1/2 d^T N d`` for ``d = v - anchor``, with ``N`` the
+    slopes' own noise (:attr:`Linearisation.slope_noise`), is, up to a
+    constant, ``-1/2 (v - centre)^T H (v - centre)`` with ``H = J^T J - N``
+    and ``centre = anchor - H^+ J^T r``: written so, it is flat along the
+    directions where ``H`` resolves nothing, rather than tilted by the noise
+    of their slopes.
     """
 
     value: jnp.ndarray
     slopes: jnp.ndarray
     anchor: jnp.ndarray
-    slope_noise: jnp.ndarray
-    measured: jnp.ndarray
-    sigma: jnp.ndarray
+    centre: jnp.ndarray
+    precision: jnp.ndarray
     low: jnp.ndarray
     high: jnp.ndarray
 
@@ -562,9 +620,8 @@ class _Target(eqx.Module):
 
     def log_prob(self, v):
         inside = jnp.all((v >= self.low) & (v <= self.high))
-        r = (self.model(jnp.clip(v, self.low, self.high)) - self.measured) / self.sigma
-        d = jnp.clip(v, self.low, self.high) - self.anchor
-        return jnp.where(inside, -0.5 * jnp.sum(r * r) + 0.5 * d @ self.slope_noise @ d, -jnp.inf)
+        d = jnp.clip(v, self.low, self.high) - self.centre
+        return jnp.where(inside, -0.5 * d @ self.precision @ d, -jnp.inf)
 
 
 @eqx.filter_jit
@@ -580,6 +637,20 @@ def _batch_model(target, vs):
 def _model_in_batches(target, batch):
     """The target's model on any number of rows ``(n, P)``, ``(n, N, 3)``."""
     return _in_batches(lambda vs: _batch_model(target, vs), batch, jnp.result_type(float))
+
+
+def unresolved(lin, step, labels, share=0.1):
+    """The labels with more than ``share`` of their weight, in difference steps, where ``J^T J - N`` is null.
+
+    Along those directions the slopes of ``lin`` are mostly their own Monte
+    Carlo noise (:attr:`Linearisation.slope_noise`): the chain's log-density
+    is flat there, and a parameter's interval is the region's extent.
+    """
+    scaled = step[:, None] * (lin.jac.T @ lin.jac - lin.slope_noise) * step[None, :]
+    w, u = np.linalg.eigh(0.5 * (scaled + scaled.T))
+    null = w <= 1e-12 * max(np.max(np.abs(w)), 1e-300)
+    weight = np.sum(u[:, null] ** 2, axis=1)
+    return [name for name, x in zip(labels, weight) if x > share]
 
 
 def linear_region(lin, step, low, high):
@@ -600,10 +671,12 @@ def sample(lin, region, width, *, seed, walkers, max_steps, progress):
         The :class:`Chain` and the ``_Target`` whose log-density it sampled.
     """
     dtype = jnp.result_type(float)
+    precision = lin.jac.T @ lin.jac - lin.slope_noise
+    centre = lin.anchor - laplace(lin.jac, lin.slope_noise) @ lin.jac.T @ lin.residuals
     target = _Target(value=jnp.asarray(lin.value, dtype), slopes=jnp.asarray(lin.slopes, dtype),
-                     anchor=jnp.asarray(lin.anchor, dtype), slope_noise=jnp.asarray(lin.slope_noise, dtype),
-                     measured=jnp.asarray(lin.measured, dtype), sigma=jnp.asarray(lin.sigma, dtype),
-                     low=jnp.asarray(region[0], dtype), high=jnp.asarray(region[1], dtype))
+                     anchor=jnp.asarray(lin.anchor, dtype), centre=jnp.asarray(centre, dtype),
+                     precision=jnp.asarray(precision, dtype), low=jnp.asarray(region[0], dtype),
+                     high=jnp.asarray(region[1], dtype))
     progress(f"sampling with {walkers} walkers (emcee, differential-evolution moves)")
     log_prob = _in_batches(lambda vs: _batch_log_prob(target, vs), walkers // 2, dtype)
     chain = run_ensemble(log_prob, lin.anchor, width, seed=seed, walkers=walkers, max_steps=max_steps,
@@ -632,6 +705,32 @@ def monte_carlo_spread(problem, at, sens, *, key, replicas, progress):
                      for k in jax.random.split(key, replicas)])
     shifts = (reps - reps.mean(axis=0)).reshape(replicas, -1) @ sens.reshape(sens.shape[0], -1).T
     return np.atleast_2d(np.cov(shifts.T)) * walks / problem.walks
+
+
+def slope_spread(lin, incidence):
+    """``(P, P)``: the covariance of the chain's centre under the Monte Carlo error of the slopes at ``lin``.
+
+    The centre ``anchor - H^+ J^T r`` (``_Target``) moves by ``-H^+ dJ^T r``
+    under an error ``dJ`` of the slopes, which the spread of the value
+    (:func:`monte_carlo_spread`) does not see. The error of the mean of two
+    halves is distributed as half their difference ``D``, and the values of
+    one incidence share their walks, so ``Cov(dJ^T r) = sum_k u_k u_k^T``
+    with ``u_k = 1/2 sum D_m r_m`` over the rows ``m`` (points and channels)
+    of incidence ``k``: an unbiased estimate from one difference, with as
+    many degrees of freedom as incidences.
+
+    Args:
+        lin: the :class:`Linearisation` at the anchor.
+        incidence: ``(N,)`` each point's incidence, an integer label.
+    """
+    d = lin.slope_difference / lin.sigma[..., None]
+    r = lin.residuals.reshape(lin.value.shape)
+    per_point = 0.5 * np.einsum("ncp,nc->np", d, r)
+    _, k = np.unique(np.asarray(incidence), return_inverse=True)
+    u = np.zeros((k.max() + 1, per_point.shape[1]))
+    np.add.at(u, k, per_point)
+    h = laplace(lin.jac, lin.slope_noise)
+    return h @ (u.T @ u) @ h
 
 
 def summarise(chain, mc_cov, labels, fit_values, lin, laplace_sd, low, high, *, rng):
@@ -709,6 +808,9 @@ class PosteriorRecord:
         mc_anchor_relative_error: the median relative Monte Carlo error of ``M_hi`` at the anchor.
         mc_anchor_error_over_noise: that error over the measurement noise (median).
         mc_model_error_over_noise: the sampled model's RMS error against independent estimates, over the noise.
+        unresolved: the labels along whose directions the slopes at the anchor
+            are mostly their own Monte Carlo noise (:func:`unresolved`): the
+            chain is flat there within the region, and their intervals are its extent.
     """
 
     labels: list
@@ -740,6 +842,7 @@ class PosteriorRecord:
     noise_relative: float | None = None
     noise_absolute: float | None = None
     noise_log10_sd: list | None = None
+    unresolved: list = dataclasses.field(default_factory=list)
 
     @property
     def interface(self):
@@ -763,7 +866,7 @@ class PosteriorRecord:
             mc_anchor_error_over_noise=self.mc_anchor_error_over_noise,
             mc_model_error_over_noise=self.mc_model_error_over_noise,
             noise_relative=self.noise_relative, noise_absolute=self.noise_absolute,
-            noise_log10_sd=self.noise_log10_sd,
+            noise_log10_sd=self.noise_log10_sd, unresolved=list(self.unresolved),
         )
 
 
@@ -788,8 +891,8 @@ class Posterior:
         noise: ``(N, 3)`` the measurement's standard deviation: the file's std
             columns, or the estimated :class:`NoiseModel`'s at its maximum likelihood.
         noise_model: that :class:`NoiseModel`, or ``None`` for a file with std columns.
-        mc_cov: ``(P, P)`` the covariance of the parameters' Monte Carlo shift
-            (:func:`monte_carlo_spread`); the intervals are percentiles of the
+        mc_cov: ``(P, P)`` the covariance of the parameters' Monte Carlo shift, from
+            the value's error (:func:`monte_carlo_spread`) and the slopes' (:func:`slope_spread`); the intervals are percentiles of the
             chain's draws plus such shifts.
     """
 
@@ -866,7 +969,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
         noise = np.asarray(meas.std, float)
 
     step = slope_steps(problem, v0, noise, key=pilot_key, progress=say)
-    at_fit, lin = find_anchor(problem, v0, step, noise, meas.values, key=anchor_key, estimated_noise=estimated,
+    at_fit, lin, step = find_anchor(problem, v0, step, noise, meas.values, key=anchor_key, estimated_noise=estimated,
                               progress=say)
     noise_model = lin.noise_model
     say("Laplace covariance and sensitivities from those slopes")
@@ -877,7 +980,8 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
     region = linear_region(lin, step, low, high)
     chain, target = sample(lin, region, np.minimum(width, 0.1 * (high - low)), seed=seed, walkers=walkers,
                            max_steps=max_steps, progress=say)
-    mc_cov = monte_carlo_spread(problem, lin.anchor, sens, key=check_key, replicas=replicas, progress=say)
+    mc_cov = (monte_carlo_spread(problem, lin.anchor, sens, key=check_key, replicas=replicas, progress=say)
+              + slope_spread(lin, meas.theta_i))
     rng = np.random.default_rng(seed + 1)
     summary, corr = summarise(chain, mc_cov, param.labels(), v0, lin, laplace_sd, low, high, rng=rng)
     predictive, model_error = check_model(target, problem, chain, lin, key=check_key, checks=checks, rng=rng,
@@ -917,4 +1021,5 @@ def _record(meas, param, chain, lin, at_fit, *, region, step, noise_model, hi_wa
         noise_relative=None if noise_model is None else noise_model.relative,
         noise_absolute=None if noise_model is None else noise_model.absolute,
         noise_log10_sd=None if noise_model is None else list(noise_model.sd),
+        unresolved=unresolved(lin, step, labels),
     )

@@ -50,7 +50,11 @@ def _laplace_notes(post):
         low, high = prior[name]
         span = high - low
         a, b = region[name]
-        if (a > low and s["p2.5"] <= a + 1e-3 * span) or (b < high and s["p97.5"] >= b - 1e-3 * span):
+        if name in post.record.unresolved:
+            notes.append(f"`{name}`: its slopes at the anchor are mostly their own Monte Carlo noise, so the "
+                         "linearisation resolves nothing along its direction and its interval is the region "
+                         f"[{a:.4g}, {b:.4g}]; the data may constrain it more than this budget of walks can show.")
+        elif (a > low and s["p2.5"] <= a + 1e-3 * span) or (b < high and s["p97.5"] >= b - 1e-3 * span):
             notes.append(f"`{name}`: the posterior reaches the edge of the region [{a:.4g}, {b:.4g}] where the "
                          "model is linearised; the fit is far from the optimum of the high-budget model. Refit "
                          "with more walks (`jaxcos fit --walks 4096`) and pass it with `--params`.")
