@@ -16,7 +16,7 @@ from jaxcos.cli import main
 from jaxcos.io._measurements import Measurements
 from jaxcos.inference._fit import parameterization
 from jaxcos.inference._posterior import (Linearisation, NoiseModel, PosteriorRecord, estimate_noise, laplace,
-                                        run_ensemble, sensitivity, slope_spread, uncertainty, widen_steps)
+                                        run_ensemble, sensitivity, uncertainty, widen_steps)
 from jaxcos.report import write_uncertainty
 from jaxcos.report._posterior import _corner, _sensitivity_maps
 
@@ -98,38 +98,6 @@ def test_noisy_slopes_get_longer_steps():
     step = np.array([1e-3, 1e-3, 1e-3])
     np.testing.assert_allclose(widen_steps(lin, step, np.ones(3)), [min(4e-3 * np.sqrt(rho[0]), 8e-3), 1e-3, 1e-3])
     np.testing.assert_allclose(widen_steps(lin, step, np.full(3, 2e-3)), [2e-3, 1e-3, 1e-3])
-
-
-def test_slope_spread_is_the_centres_covariance():
-    """Averaged over draws of the slopes' error, :func:`slope_spread` is the covariance of ``-H^+ dJ^T r``.
-
-    The errors of one incidence are correlated (a shared part and a part of
-    their own), as an incidence's values share their walks. The tolerance is
-    four standard errors of the empirical variance and of the estimates' mean.
-    """
-    rng = np.random.default_rng(5)
-    n, p, draws = 24, 2, 4000
-    incidence = np.repeat(np.arange(4), 6)
-    slopes = rng.normal(size=(n, 3, p))
-    residuals = rng.normal(size=(n, 3))
-    h = np.linalg.inv(np.einsum("ncp,ncq->pq", slopes, slopes))
-
-    def error():
-        shared = rng.normal(size=(4, 1, p))[incidence]
-        return 0.05 * (shared + rng.normal(size=(n, 3, p)))
-
-    shifts, estimates = [], []
-    for _ in range(draws):
-        e0, e1 = error(), error()
-        lin = Linearisation(anchor=np.zeros(p), value=residuals, slopes=slopes + 0.5 * (e0 + e1),
-                            relative_error=0.0, measured=np.zeros((n, 3)), noise=np.ones((n, 3)),
-                            slope_difference=e0 - e1)
-        shifts.append(-h @ np.einsum("ncp,nc->p", 0.5 * (e0 + e1), residuals))
-        estimates.append(np.diag(slope_spread(lin, incidence)))
-    shifts, estimates = np.array(shifts), np.array(estimates)
-    empirical = shifts.var(axis=0)
-    se = np.sqrt(2 / draws) * empirical + estimates.std(axis=0) / np.sqrt(draws)
-    assert np.all(np.abs(estimates.mean(axis=0) - empirical) < 4 * se)
 
 
 # --- a small jaxcos problem with a known truth ---------------------------------------
