@@ -16,7 +16,7 @@ from jaxcos.cli import main
 from jaxcos.io._measurements import Measurements
 from jaxcos.inference._fit import parameterization
 from jaxcos.inference._posterior import (Linearisation, NoiseModel, PosteriorRecord, estimate_noise, laplace,
-                                        run_ensemble, sensitivity, uncertainty, widen_steps)
+                                        run_ensemble, sample, sensitivity, uncertainty, widen_steps)
 from jaxcos.report import write_uncertainty
 from jaxcos.report._posterior import _corner, _sensitivity_maps
 
@@ -98,6 +98,32 @@ def test_noisy_slopes_get_longer_steps():
     step = np.array([1e-3, 1e-3, 1e-3])
     np.testing.assert_allclose(widen_steps(lin, step, np.ones(3)), [min(4e-3 * np.sqrt(rho[0]), 8e-3), 1e-3, 1e-3])
     np.testing.assert_allclose(widen_steps(lin, step, np.full(3, 2e-3)), [2e-3, 1e-3, 1e-3])
+
+
+def test_chain_is_centred_at_the_anchor_and_flat_where_the_slopes_are_noise():
+    """The chain's mean is the anchor, though the linear model's optimum lies elsewhere; along a parameter whose
+    slopes are all noise it is uniform over the region (mean at the centre, sd its width over sqrt(12)).
+
+    Tolerances: four standard errors of a mean and of a standard deviation from the effective sample size.
+    """
+    lin = dataclasses.replace(_noisy_linearisation(6.0), value=np.full((30, 3), 3.0))
+    info = lin.jac.T @ lin.jac - lin.slope_noise
+    sd = np.sqrt(np.diag(laplace(lin.jac, lin.slope_noise)))
+    optimum = -laplace(lin.jac, lin.slope_noise) @ lin.jac.T @ lin.residuals
+    assert np.max(np.abs(optimum[1:]) / sd[1:]) > 1.5  # the linear model's optimum is off the anchor
+    region = (np.full(3, -1.0), np.full(3, 1.0))
+    chain, _ = sample(lin, region, np.full(3, 0.1), seed=2, walkers=8, max_steps=20000,
+                      progress=lambda message: None)
+    assert chain.converged
+    ess = chain.ess
+    w, u = np.linalg.eigh(info)
+    assert w[0] < 1e-9 * w[-1] and abs(u[0, 0]) > 0.99  # parameter 0 alone is unresolved
+    mean, spread = chain.samples.mean(axis=0), chain.samples.std(axis=0)
+    assert np.all(np.abs(mean[1:]) < 4 * sd[1:] / np.sqrt(ess[1:]))
+    assert np.all(np.abs(spread[1:] / sd[1:] - 1) < 4 / np.sqrt(2 * ess[1:]))
+    uniform = 2 / np.sqrt(12)
+    assert abs(mean[0]) < 4 * uniform / np.sqrt(ess[0])
+    assert abs(spread[0] / uniform - 1) < 4 * np.sqrt(0.8 / 4 / ess[0])
 
 
 # --- a small jaxcos problem with a known truth ---------------------------------------
@@ -344,6 +370,22 @@ def test_report_says_when_the_chain_reaches_the_edge_of_the_linearisation():
     assert notes[0].startswith("`at_region`") and "linearised" in notes[0]
     assert notes[1].startswith("`at_prior`") and "prior" in notes[1]
     assert notes[2].startswith("`unresolved`") and "Monte Carlo noise" in notes[2]
+
+
+def test_report_says_when_the_two_lobes_overlap():
+    """Overlapping 95% intervals of ``g1`` and ``g2`` get a note on ``w_g``; separate ones do not."""
+    from jaxcos.report._posterior import _laplace_notes
+
+    def post(g1, g2):
+        row = dict(p16_noise_only=0.4, p84_noise_only=0.6, laplace_sd=0.1)
+        summary = {name: dict(row, **{"p2.5": a, "p97.5": b}) for name, (a, b) in
+                   (("g1", g1), ("g2", g2), ("w_g", (0.3, 0.7)))}
+        box = {n: (-1.0, 1.0) for n in summary}
+        record = SimpleNamespace(prior=box, linear_region=box, unresolved=[])
+        return SimpleNamespace(summary=summary, record=record)
+
+    assert [n for n in _laplace_notes(post((-0.01, 0.11), (-0.09, 0.03))) if n.startswith("`w_g`")]
+    assert not [n for n in _laplace_notes(post((0.19, 0.21), (0.33, 0.41))) if n.startswith("`w_g`")]
 
 
 def test_a_chain_that_never_moved_gets_its_length_as_autocorrelation_time():

@@ -67,6 +67,12 @@ def _laplace_notes(post):
         elif half > 0 and not 2 / 3 <= half / s["laplace_sd"] <= 3 / 2:
             notes.append(f"`{name}`: chain half-width {half:.3g} against Laplace sd {s['laplace_sd']:.3g}; "
                          "the posterior is not Gaussian at this scale.")
+    g1, g2 = post.summary.get("g1"), post.summary.get("g2")
+    if g2 is not None and g1["p2.5"] <= g2["p97.5"] and g2["p2.5"] <= g1["p97.5"]:
+        notes.append(f"`w_g`: the 95% intervals of `g1` [{g1['p2.5']:.3g}, {g1['p97.5']:.3g}] and `g2` "
+                     f"[{g2['p2.5']:.3g}, {g2['p97.5']:.3g}] overlap, so the data may not tell the two lobes "
+                     "apart, and then any `w_g` fits alike; its interval describes the mode around the anchor "
+                     "only. The single-lobe variant may serve as well (`jaxcos ablate`).")
     return notes
 
 
