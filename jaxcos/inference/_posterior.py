@@ -33,10 +33,10 @@ incidence). :func:`uncertainty` runs it in stages:
    independent keys: ``N = D^T D / 4``, with ``D`` their whitened difference,
    is the expected share of ``J^T J`` that is the slopes' own noise, and the
    log-likelihood adds ``dv^T N dv / 2`` back, no more than ``J^T J`` holds
-   in any direction (:attr:`Linearisation.slope_noise`).
+   in any direction (:attr:`Linearisation.information`).
 3. :func:`find_anchor`: where the slopes at the fit are mostly noise, their
-   steps are lengthened (:func:`widen_steps`); the anchor starts at the fit and moves by up to
-   ``ANCHORS - 1`` Gauss-Newton steps towards the optimum of the last
+   steps are lengthened (:func:`widen_steps`); the anchor starts at the fit
+   and moves by up to ``ANCHORS - 1`` Gauss-Newton steps towards the optimum of the last
    linearisation, each with a line search under common random numbers.
 4. :func:`sample`: emcee on the Gaussian with the linearisation's
    information ``J^T J - N`` centred at the anchor (``_Target``), within
@@ -379,18 +379,23 @@ class Linearisation:
         return 0.25 * d.T @ d
 
     @property
-    def slope_noise(self):
-        """``(P, P)``: :attr:`raw_slope_noise` where it is smaller than ``J^T J``, all of ``J^T J`` where it is not.
+    def information(self):
+        """``(P, P)``: ``H``, the positive part of ``J^T J - N`` (its negative eigenvalues set to 0).
 
-        ``J^T J - slope_noise`` is the positive part of ``J^T J - N`` (its
-        negative eigenvalues set to 0): along a direction where the slopes'
-        noise exceeds them, the linearisation resolves no information, and the
+        Along a direction where the slopes' noise :attr:`raw_slope_noise`
+        exceeds them, the linearisation resolves no information, and the
         chain's log-density is flat there (within the region) rather than
         rising away from the anchor.
         """
-        jtj = self.jac.T @ self.jac
-        w, u = np.linalg.eigh(0.5 * ((jtj - self.raw_slope_noise) + (jtj - self.raw_slope_noise).T))
-        return jtj - (u * np.maximum(w, 0.0)) @ u.T
+        info = self.jac.T @ self.jac - self.raw_slope_noise
+        w, u = np.linalg.eigh(0.5 * (info + info.T))
+        return (u * np.maximum(w, 0.0)) @ u.T
+
+    @property
+    def slope_noise(self):
+        """``(P, P)``: ``J^T J -`` :attr:`information`: :attr:`raw_slope_noise` where it is smaller than ``J^T J``,
+        all of ``J^T J`` where it is not."""
+        return self.jac.T @ self.jac - self.information
 
     def noise_dominated(self):
         """``(P,)``: each parameter's share of slope noise, ``N_ii / (J^T J)_ii`` (:attr:`raw_slope_noise`)."""
@@ -547,8 +552,9 @@ def find_anchor(problem, v0, step, noise, measured, *, key, estimated_noise=Fals
 
     Where the slopes at the fit are mostly their own noise, the steps are
     lengthened once (:func:`widen_steps`) and the fit's linearisation made
-    again with them under the same key. The fit's own estimate is cheap, and its optimum lies off the high-budget
-    model's by its key's Monte Carlo error, often by many posterior widths.
+    again with them under the same key. The fit's own estimate is cheap, and
+    its optimum lies off the high-budget model's by its key's Monte Carlo
+    error, often by many posterior widths.
     From the fit, Gauss-Newton steps on the last linearisation move the
     anchor towards the optimum: each step's direction is that linearisation's,
     its length the best of :data:`LINE` fractions of it (no parameter moving
@@ -606,7 +612,7 @@ class _Target(eqx.Module):
     """The linearised model, and a Gaussian log-likelihood at the anchor with a uniform prior on ``[low, high]``.
 
     ``-1/2 (v - anchor)^T H (v - anchor)`` with ``H = J^T J - N``, the
-    information that the slopes resolve (:attr:`Linearisation.slope_noise`):
+    information that the slopes resolve (:attr:`Linearisation.information`):
     flat along the directions where they resolve nothing. Its centre is the
     anchor, not the linear model's own optimum ``anchor - H^+ J^T r``: the
     anchor search compared the model itself along that Gauss-Newton step and
@@ -652,10 +658,10 @@ def unresolved(lin, step, labels, share=0.1):
     """The labels with more than ``share`` of their weight, in difference steps, where ``J^T J - N`` is null.
 
     Along those directions the slopes of ``lin`` are mostly their own Monte
-    Carlo noise (:attr:`Linearisation.slope_noise`): the chain's log-density
+    Carlo noise (:attr:`Linearisation.information`): the chain's log-density
     is flat there, and a parameter's interval is the region's extent.
     """
-    scaled = step[:, None] * (lin.jac.T @ lin.jac - lin.slope_noise) * step[None, :]
+    scaled = step[:, None] * lin.information * step[None, :]
     w, u = np.linalg.eigh(0.5 * (scaled + scaled.T))
     null = w <= 1e-12 * max(np.max(np.abs(w)), 1e-300)
     weight = np.sum(u[:, null] ** 2, axis=1)
@@ -682,7 +688,7 @@ def sample(lin, region, width, *, seed, walkers, max_steps, progress):
     dtype = jnp.result_type(float)
     target = _Target(value=jnp.asarray(lin.value, dtype), slopes=jnp.asarray(lin.slopes, dtype),
                      anchor=jnp.asarray(lin.anchor, dtype),
-                     precision=jnp.asarray(lin.jac.T @ lin.jac - lin.slope_noise, dtype),
+                     precision=jnp.asarray(lin.information, dtype),
                      low=jnp.asarray(region[0], dtype), high=jnp.asarray(region[1], dtype))
     progress(f"sampling with {walkers} walkers (emcee, differential-evolution moves)")
     log_prob = _in_batches(lambda vs: _batch_log_prob(target, vs), walkers // 2, dtype)
@@ -950,8 +956,8 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
         noise = np.asarray(meas.std, float)
 
     step = slope_steps(problem, v0, noise, key=pilot_key, progress=say)
-    at_fit, lin, step = find_anchor(problem, v0, step, noise, meas.values, key=anchor_key, estimated_noise=estimated,
-                              progress=say)
+    at_fit, lin, step = find_anchor(problem, v0, step, noise, meas.values, key=anchor_key,
+                                    estimated_noise=estimated, progress=say)
     noise_model = lin.noise_model
     say("Laplace covariance and sensitivities from those slopes")
     cov = laplace(lin.jac, lin.slope_noise)
