@@ -25,7 +25,8 @@ A set:
    walks x ``--sim-bounces`` bounces in batches under keys from the set's own
    generator, plus the bundled sets' noise (``scripts/make_measurements.py``):
    ``s = sqrt((0.02 v)^2 + 0.002^2)``, ``value = v + N(0, s^2)``, ``std = s``.
-4. **Fit**: ``jaxcos.fit(meas, seed=fit_seed)``, every other argument its default.
+4. **Fit**: ``jaxcos.fit(meas, seed=fit_seed)``, every other argument its default
+   (with ``--no-finer``, ``finer=False``: the selected start not refined again at four times the walks).
 5. **Score**: the fit's material and the truth, each checked by
    ``jaxcos.inference._fit.check`` (pairs of independent batches: the
    material's own chi-square, free of Monte Carlo variance) at ``--eval-walks``
@@ -216,7 +217,7 @@ def run_set(args, index):
     simulated = time.perf_counter() - started
     stages = []
     t0 = time.perf_counter()
-    result = jaxcos.fit(meas, seed=args.fit_seed, interface=args.interface or None,
+    result = jaxcos.fit(meas, seed=args.fit_seed, interface=args.interface or None, finer=not args.no_finer,
                         progress=lambda m: stages.append(round(time.perf_counter() - t0, 1)))
     fit_time = time.perf_counter() - t0
     eval_key = jax.random.key(int(rng.integers(2 ** 31)))
@@ -224,7 +225,7 @@ def run_set(args, index):
     truth_chi2, truth_se = score(meas, truth, jax.random.fold_in(eval_key, 1), args.eval_walks)
     fitted, true = physical(result.material), physical(truth)
     record = dict(
-        set=index, seed=args.seed, fit_seed=args.fit_seed, variant=variant, product=product,
+        set=index, seed=args.seed, fit_seed=args.fit_seed, finer=not args.no_finer, variant=variant, product=product,
         n_points=int(meas.values.shape[0]), mc_noise_ratio=round(mc_ratio, 3),
         fit_chi2=fit_chi2, fit_chi2_se=fit_se, truth_chi2=truth_chi2, truth_chi2_se=truth_se,
         ratio=fit_chi2 / truth_chi2, passed=bool(fit_chi2 <= args.tolerance * truth_chi2),
@@ -287,7 +288,8 @@ def write_reports(args, records):
     lines = [
         "# Randomized recovery", "",
         f"Command: `python benchmarks/bench_recovery.py {' '.join(sys.argv[1:])}`", "",
-        f"- sets: {n} (generator seed {args.seed}, fit seed {args.fit_seed}; simulated at {args.sim_walks} walks x "
+        f"- sets: {n} (generator seed {args.seed}, fit seed {args.fit_seed}{', finer=False' * args.no_finer}; "
+        f"simulated at {args.sim_walks} walks x "
         f"{args.sim_bounces} bounces, scored at {args.eval_walks} walks under independent keys)",
         f"- **recovered: {passed} of {n}** ({100 * passed / max(n, 1):.0f}%): fit's material chi-square "
         f"<= {args.tolerance} x the truth's",
@@ -338,6 +340,8 @@ def main():
     parser.add_argument("--tolerance", type=float, default=1.2, help="pass: fit chi2 <= this x truth's (1.2)")
     parser.add_argument("--interface", action="store_true",
                         help="truths under a top interface (draw_interface), fitted with --interface")
+    parser.add_argument("--no-finer", action="store_true",
+                        help="fit with finer=False (the selected start not refined again at 4x the walks)")
     parser.add_argument("--report-only", action="store_true", help="rewrite sets.csv and summary.md from sets.jsonl")
     args = parser.parse_args()
     if args.quick:

@@ -78,7 +78,8 @@ SLACK = 1.0
 def test_fit_recovers_known_parameters():
     """From another start, LM reaches an optimum at least as good as the truth, inside the noise's region."""
     data = _synthetic(TRUTH, START)
-    result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, seed=SEED, start=START, final_step=False)
+    result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, seed=SEED, start=START, finer=False,
+                 final_step=False)
     delta = _delta_chi2(result)
     assert -SLACK <= delta < CHI2_BOUND, delta
     dof = data.values.size - result.param.size
@@ -90,7 +91,8 @@ def test_fit_recovers_known_parameters():
 def test_fit_started_at_truth_stays():
     """Started at the truth, the fit does not end worse than the truth, nor outside the noise's region."""
     data = _synthetic(TRUTH, TRUTH, seed=8)
-    result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, seed=SEED, start=TRUTH, final_step=False)
+    result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, seed=SEED, start=TRUTH, finer=False,
+                 final_step=False)
     delta = _delta_chi2(result)
     assert -SLACK <= delta < CHI2_BOUND, delta
 
@@ -106,7 +108,8 @@ def test_multi_start_finds_steeply_tilted_platelets():
     truth = jaxcos.Material(layers=(dataclasses.replace(TRUTH.layers[0], c_d=0.4, theta_p=70.0),),
                             variant="single_lobe")
     data = _synthetic(truth, truth, seed=9)
-    result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, seed=SEED, final_step=False)
+    result = fit(data, variant="single_lobe", walks=WALKS, bounces=BOUNCES, seed=SEED, finer=False,
+                 final_step=False)
     delta = _delta_chi2(result, truth)
     assert -SLACK <= delta < CHI2_BOUND, delta
 
@@ -487,7 +490,8 @@ def test_each_pass_takes_its_lobe_probabilities_where_it_starts(monkeypatch):
         return out
 
     monkeypatch.setattr(fitting, "solve_lm", spy)
-    result = fit(_synthetic(TRUTH, START), variant="single_lobe", walks=16, bounces=16, jacobian_walks=8, starts=2)
+    result = fit(_synthetic(TRUTH, START), variant="single_lobe", walks=16, bounces=16, jacobian_walks=8, starts=2,
+                 finer=False)
     assert fitting.PASSES == 2 and len(calls) == 2 * result.record.starts_refined == 4
     # the unscreened start is refined in a second thread: its passes and the screened start's interleave
     pairs = [(a, b) for a in calls for b in calls if np.array_equal(b[1], a[2])]
@@ -579,6 +583,22 @@ def test_interface_parameterization_round_trip_and_bounds():
     for x in (jnp.full(param.size, 40.0), jnp.full(param.size, -40.0)):
         top = param.to_material(x).interface
         assert 1.01 - 1e-6 <= float(top.eta) <= 2.5 + 1e-6 and 0.005 - 1e-7 <= float(top.alpha_s) <= 1.0 + 1e-6
+
+
+def test_finer_refinement_joins_the_starts_and_wins_only_on_its_check():
+    """The selected start is refined again at FINE_FACTOR times the walks under the fit's key; the fit keeps
+    whichever of the refined starts has the lowest check bound (``material_chi2 + 2 se``)."""
+    import jaxcos.inference._fit as fitting
+
+    result = fit(_synthetic(TRUTH, START), variant="single_lobe", walks=16, bounces=16, jacobian_walks=8, starts=2,
+                 final_step=False)
+    last = result.starts[-1]
+    assert last.label.endswith(f"{fitting.FINE_FACTOR}x walks")
+    assert result.record.starts_refined == len(result.starts)
+    bounds = [s.material_chi2 + 2 * s.material_chi2_se for s in result.starts]
+    best = int(np.argmin(bounds))
+    assert result.record.check.material_chi2 == result.starts[best].material_chi2
+    assert result.problem.walks == (16 * fitting.FINE_FACTOR if best == len(result.starts) - 1 else 16)
 
 
 def test_fit_with_interface_writes_it(tmp_path):
