@@ -1521,7 +1521,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
             (the default) fits one exactly when ``start`` has one.
         finer: refine the selected start once more at :data:`FINE_FACTOR` times
             the walks, kept where its check is better (LM only; :func:`refine_finer`).
-            ``False`` saves that time (about a third of a fit) and keeps the
+            ``False`` saves that time (nearly half of a fit) and keeps the
             best start at the fit's own walks.
         final_step: take the last step on the best check's residuals (LM;
             :func:`polish`). ``False`` keeps the minimum of the fixed-key
