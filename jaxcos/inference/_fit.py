@@ -1367,32 +1367,32 @@ class Selection:
     """The select stage's outcome.
 
     Attributes:
-        best: the index of the selected start among the refined ones.
         checks: the :class:`CheckResult` of each refined start.
         pooled: each check's pooled model ``(N, 3)``, file's quantity.
-        at_optimum: refined starts whose loss on the selected start's objective is within 1% of its own.
     """
 
-    best: int
     checks: tuple
     pooled: tuple
-    at_optimum: int
+
+    @property
+    def best(self):
+        """The index of the selected start among the refined ones: the lowest :attr:`CheckResult.bound`."""
+        return int(np.argmin([c.bound for c in self.checks]))
 
 
 def select(refined, meas, key, walks):
-    """The select stage: check each refined start under independent keys; the lowest :attr:`CheckResult.bound` wins.
-
-    Each start's loss has its own weights and lobe probabilities; on the
-    selected start's objective the starts are compared on one footing for
-    ``at_optimum`` (a check cannot tell near-mirror materials apart).
-    """
+    """The select stage: check each refined start under independent keys; the lowest :attr:`CheckResult.bound` wins."""
     checks, pooled = zip(*[_check(r.problem, meas, r.x, key, walks) for r in refined])
-    best = int(np.argmin([c.bound for c in checks]))
-    return Selection(best=best, checks=checks, pooled=pooled, at_optimum=_at_optimum(refined, best))
+    return Selection(checks=checks, pooled=pooled)
 
 
 def _at_optimum(refined, best):
-    """How many refined starts have a loss within 1% of start ``best``'s on ``best``'s objective."""
+    """How many refined starts have a loss within 1% of start ``best``'s on ``best``'s objective.
+
+    Each start's loss has its own weights and lobe probabilities; on the
+    selected start's objective the starts are compared on one footing (a
+    check cannot tell near-mirror materials apart).
+    """
     problem = refined[best].problem
     common = [float(problem.loss(r.x)) for r in refined]
     return len([c for c in common if c - common[best] <= 0.01 * common[best]])
@@ -1405,9 +1405,8 @@ def refine_finer(refined, selection, problem, meas, method, budget, key, say):
     the same key and ``FINE_FACTOR`` times its walks (the first of them the
     same walks), and its Jacobian the same walks. The result is checked like
     the others (:func:`_check`, keys from ``key``) and joins the refined
-    starts; it becomes the selected one where its :attr:`CheckResult.bound`
-    is lower, and ``at_optimum`` is counted again on the selected start's
-    objective. Returns ``(refined, selection)``, both extended.
+    starts, and becomes the selected one where its :attr:`CheckResult.bound`
+    is the lowest. Returns ``(refined, selection)``, both extended.
     """
     start = refined[selection.best]
     finer = Refiner(dataclasses.replace(problem, walks=FINE_FACTOR * problem.walks), meas, method, budget)
@@ -1415,10 +1414,7 @@ def refine_finer(refined, selection, problem, meas, method, budget, key, say):
         f"and checking it")
     r = finer(f"{start.label}, {FINE_FACTOR}x walks", start.x)
     c, pooled = _check(r.problem, meas, r.x, key, budget.check_walks)
-    refined = refined + [r]
-    best = len(refined) - 1 if c.bound < selection.checks[selection.best].bound else selection.best
-    return refined, Selection(best=best, checks=selection.checks + (c,), pooled=selection.pooled + (pooled,),
-                              at_optimum=_at_optimum(refined, best))
+    return refined + [r], Selection(checks=selection.checks + (c,), pooled=selection.pooled + (pooled,))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1469,7 +1465,8 @@ def summarise(meas, refined, selection, polished, *, method, variant, seed, budg
         n_evaluations=int(round(sum(r.evaluations for r in refined))), budget=budget, seed=int(seed),
         n_params=int(param.size), connection=problem.connection, fitted=tuple(param.names),
         fixed_starts=tuple(f.description for f in fixed), starts_refined=len(refined),
-        starts_at_optimum=selection.at_optimum, unfinished_energy=float(np.max(np.asarray(est.unfinished))),
+        starts_at_optimum=_at_optimum(refined, selection.best),
+        unfinished_energy=float(np.max(np.asarray(est.unfinished))),
         mc_error_median=float(np.median(model_std / (meas.std if meas.std is not None else 1.0))),
         check=polished.check, final_step=polished.step,
     )
