@@ -24,7 +24,8 @@ from jaxcos.report import FIT_FILES
 
 distributed = pytest.importorskip("distributed")
 
-TOY = ["--variant", "single_lobe", "--walks", "4", "--bounces", "4", "--jacobian-walks", "4", "--starts", "0"]
+TOY = ["--variant", "single_lobe", "--walks", "4", "--bounces", "4", "--jacobian-walks", "4", "--starts", "0",
+       "--no-finer"]
 TIME_FIELDS = ("time_s",)
 
 

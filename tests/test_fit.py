@@ -406,7 +406,7 @@ def test_cli_fit_reports_its_check(tmp_path, capsys):
     save_measurements(_synthetic(TRUTH, START), csv)
     out = tmp_path / "fit"
     assert main(["fit", str(csv), "--out", str(out), "--variant", "single_lobe", "--walks", "10", "--bounces", "16",
-                 "--jacobian-walks", "8", "--starts", "2"]) == 0
+                 "--jacobian-walks", "8", "--starts", "2", "--no-finer"]) == 0
     record = json.loads((out / "params.json").read_text())["fit"]
     assert record["walks"] == 10 and record["jacobian_walks"] == 8
     # 16 x 10 walks: 16 batches of the fit's own 10 walks
@@ -414,6 +414,7 @@ def test_cli_fit_reports_its_check(tmp_path, capsys):
     assert record["check"]["chi2"] > record["check"]["chi2_mc"] > 0
     report = (out / "report.md").read_text()
     assert "## Check under independent keys" in report and f"{record['check']['reduced_chi2']:.3f}" in report
+    assert "4x walks" not in report  # --no-finer
     # the last step: checked under fresh keys, and the record's check is the fitted material's
     step = record["final_step"]
     assert step["check_before"]["walks"] == step["check_after"]["walks"] == 160
@@ -601,11 +602,30 @@ def test_finer_refinement_joins_the_starts_and_wins_only_on_its_check():
     assert result.problem.walks == (16 * fitting.FINE_FACTOR if best == len(result.starts) - 1 else 16)
 
 
+def test_finer_refinement_only_where_the_objective_is_rough(monkeypatch):
+    """Where the objective's Monte Carlo share is below FINE_SHARE the finer refinement is skipped, and the
+    progress says why; at 16 walks (the test above) the share is far above it."""
+    import jaxcos.inference._fit as fitting
+
+    data = _synthetic(TRUTH, START)
+    options = dict(variant="single_lobe", walks=16, bounces=16, jacobian_walks=8, starts=2, final_step=False)
+    messages = []
+    monkeypatch.setattr(fitting, "FINE_SHARE", np.inf)
+    result = fit(data, progress=messages.append, **options)
+    assert not any(s.label.endswith("x walks") for s in result.starts) and result.problem.walks == 16
+    assert any(m.startswith("no finer refinement: the objective's Monte Carlo share is") for m in messages)
+    # the share: the check's own Monte Carlo chi-square, scaled from its walks to the objective's
+    c = result.record.check
+    assert fitting.objective_mc_share(c, 16) == pytest.approx(c.chi2_mc * c.walks / 16 / c.material_chi2)
+    monkeypatch.undo()
+    assert fitting.objective_mc_share(c, 16) >= fitting.FINE_SHARE
+
+
 def test_fit_with_interface_writes_it(tmp_path):
     """`fit(interface=True)` returns a material with an interface; params.json carries it, the report names it."""
     meas = _tiny()
     result = fit(meas, variant="single_lobe", walks=16, bounces=8, jacobian_walks=8, starts=1, interface=True,
-                 final_step=False)
+                 final_step=False, finer=False)
     assert result.material.interface is not None
     assert result.record.fitted[-2:] == ("eta", "alpha_s")
     jaxcos.write_fit(result, meas, tmp_path / "out")

@@ -164,7 +164,7 @@ def _synthetic(seed=11, walks=8192):
 @pytest.fixture(scope="module")
 def small_posterior():
     data = _synthetic()
-    start = jaxcos.fit(data, variant="single_lobe", walks=128, bounces=48, start=TRUTH)
+    start = jaxcos.fit(data, variant="single_lobe", walks=128, bounces=48, start=TRUTH, finer=False)
     post = uncertainty(data, start, walkers=24, max_steps=600, hi_walks=1024,
                        checks=4, replicas=12)
     return data, post
@@ -253,7 +253,7 @@ def test_noise_levels_are_recovered_by_maximum_likelihood(absolute):
 def no_std_posterior():
     """The small problem's data with the std columns removed: the posterior estimates the noise."""
     data = dataclasses.replace(_synthetic(), std=None)
-    start = jaxcos.fit(data, variant="single_lobe", walks=128, bounces=48, start=TRUTH)
+    start = jaxcos.fit(data, variant="single_lobe", walks=128, bounces=48, start=TRUTH, finer=False)
     return data, uncertainty(data, start, walkers=24, max_steps=600, hi_walks=1024, checks=4, replicas=12)
 
 

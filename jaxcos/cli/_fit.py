@@ -45,7 +45,7 @@ def fit_options(args):
     noise = parse_noise(args.noise) if args.noise is not None else None
     return dict(variant=args.variant, method=args.method, seed=args.seed, walks=walks, bounces=bounces,
                 jacobian_walks=args.jacobian_walks, starts=args.starts, fit_t=args.fit_t, fit_phi=args.fit_phi,
-                start=args.start, t=args.t, interface=args.interface, noise=noise)
+                start=args.start, t=args.t, interface=args.interface, noise=noise, finer=not args.no_finer)
 
 
 def fit_file(path, out, options, *, force=False, progress=None):
@@ -61,7 +61,7 @@ def fit_file(path, out, options, *, force=False, progress=None):
     result = fit(meas, variant=options["variant"], method=options["method"], seed=options["seed"],
                  walks=options["walks"], bounces=options["bounces"], jacobian_walks=options["jacobian_walks"],
                  starts=options["starts"], fit_t=options["fit_t"], fit_phi=options["fit_phi"], start=start,
-                 t=options["t"], interface=options["interface"] or None, progress=progress)
+                 t=options["t"], interface=options["interface"] or None, finer=options["finer"], progress=progress)
     write_fit(result, meas, out, force=force)
     return result
 
@@ -174,6 +174,9 @@ def add_command(sub):
     p.add_argument("--noise", metavar="REL[,ABS]", default=None,
                    help="for a file without std columns: weigh each point by the noise model "
                         "std = REL * value + ABS (for example 0.05,0.005) instead of minimising the plain L2")
+    p.add_argument("--no-finer", action="store_true",
+                   help="skip the last refinement at four times the walks: a faster fit that may stop short of "
+                        "the optimum where the fit's own walks cannot resolve it (docs/method.md)")
     p.add_argument("--force", action="store_true", help="overwrite an existing result in DIR")
     add_catalogue_options(p)
     p.set_defaults(func=_cmd)
