@@ -219,7 +219,8 @@ def _synthetic(material, path, seed, walks=4096):
 def ablation():
     """One ablation of two synthetic files: one made by a single-lobe model, one by a strongly two-lobed one."""
     files = [_synthetic(SINGLE, "single.csv", 3), _synthetic(TWO, "two.csv", 4)]
-    return jaxcos.ablate(files, variants=("single_lobe", "two_lobe"), walks=WALKS, bounces=BOUNCES, starts=3, seed=0)
+    return jaxcos.ablate(files, variants=("single_lobe", "two_lobe"), walks=WALKS, bounces=BOUNCES, starts=3, seed=0,
+                         finer=False)
 
 
 def _row(result, name, variant):
@@ -257,7 +258,8 @@ def interface_ablation():
     32 for the fits decide it; the fit with the interface is within about 1.5 of the noise.
     """
     data = _synthetic(GLOSSY, "glossy.csv", 5, walks=1024)
-    return jaxcos.ablate([data], variants=("diffusers_only",), walks=32, bounces=16, starts=0, seed=0, interface=True)
+    return jaxcos.ablate([data], variants=("diffusers_only",), walks=32, bounces=16, starts=0, seed=0, interface=True,
+                         finer=False)
 
 
 @pytest.mark.slow
@@ -305,6 +307,8 @@ def test_rows_and_written_results(ablation, tmp_path):
     assert float(rows[1]["bic"]) == pytest.approx(ablation.rows[1]["bic"], rel=1e-5)
     report = (out / "report.md").read_text()
     assert "CIEDE2000" in report and "exposure 1" in report and "D65" in report and "## single.csv" in report
+    assert ablation.settings["finer"] is False and "no fit's last refinement at four times the walks" in report
+    assert not any(s.label.endswith("x walks") for s in fit.starts)
     assert (out / "ablation.png").stat().st_size > 10000
     with pytest.raises(jaxcos.InputError, match="already exists"):
         jaxcos.write_ablation(ablation, out)

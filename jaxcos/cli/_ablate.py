@@ -22,7 +22,8 @@ def _cmd(args):
     targets = [os.path.join(args.out, name) for name in ABLATION_FILES]
     refuse_overwrite(targets, args.force)
     result = ablate(args.measurements, variants, seed=args.seed, walks=args.walks, bounces=args.bounces,
-                    starts=args.starts, exposure=args.exposure, interface=args.interface, progress=progress("ablate"))
+                    starts=args.starts, exposure=args.exposure, interface=args.interface, finer=not args.no_finer,
+                    progress=progress("ablate"))
     write_ablation(result, args.out, force=args.force)
     for name in result.names:
         best = min((r for r in result.rows if r["file"] == name), key=lambda r: r["bic"])
@@ -53,6 +54,8 @@ def add_command(sub):
     p.add_argument("--interface", action="store_true",
                    help="also fit each Monte Carlo variant V with a rough dielectric top interface (V+interface: "
                    "eta and alpha_s fitted besides; docs/model.md section 3a); AIC and BIC compare them all")
+    p.add_argument("--no-finer", action="store_true",
+                   help="skip each fit's last refinement at four times the walks (as jaxcos fit --no-finer)")
     p.add_argument("--force", action="store_true", help="overwrite an existing result in DIR")
     p.add_argument("--catalogue", action="store_true",
                    help="one ablation per file (files, folders or glob patterns) in DIR/NAME/, as a catalogue on "

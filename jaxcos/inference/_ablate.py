@@ -324,7 +324,7 @@ class AblationResult:
         names: the file names used in the table.
         variants: the variants fitted, in table order (with ``interface``, each Monte
             Carlo variant followed by its ``+interface`` counterpart).
-        settings: budget, seed, starts, exposure, interface, padding and total time.
+        settings: budget, seed, starts, exposure, interface, finer, padding and total time.
     """
 
     rows: list
@@ -366,7 +366,8 @@ def _real(result, meas):
 
 
 def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLATION_WALKS, bounces=ABLATION_BOUNCES,
-           starts=15, refine=1, reduced_refine=1, exposure=1.0, interface=False, share_compiled=True, progress=None):
+           starts=15, refine=1, reduced_refine=1, exposure=1.0, interface=False, finer=True, share_compiled=True,
+           progress=None):
     """Fit every variant on every file and compare them (module docstring).
 
     Args:
@@ -382,6 +383,8 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
         exposure: scale of the reflectance factors before the CIEDE2000 colours.
         interface: also fit each Monte Carlo variant with a rough dielectric top
             interface (``V+interface``, 2 more parameters; module docstring).
+        finer: each fit's last refinement at four times the walks, where its
+            objective is rough (:func:`jaxcos.fit`); ``False`` skips it.
         share_compiled: pad files with std columns to a common shape so that
             their fits share compiled code.
         progress: a callable ``progress(message)`` (default: none).
@@ -437,7 +440,8 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
             tell(f"fitting from the {label}")
             t0 = time.perf_counter()
             variant, top = split_variant(entry)
-            r = _real(fit(padded[index], variant=variant, interface=top, progress=tell, **budget, **options), meas)
+            r = _real(fit(padded[index], variant=variant, interface=top, finer=finer, progress=tell, **budget,
+                             **options), meas)
             times[entry] = times.get(entry, 0.0) + time.perf_counter() - t0
             score = _score(meas, r)
             if entry not in kept or score < kept[entry][0]:
@@ -481,7 +485,7 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
             fits[(index, variant)] = result
             say(f"{base} {variant}: L2 {record.l2:.4g}, BIC {bic:.1f} ({times[variant]:.1f} s, kept the {label})")
     settings = dict(seed=int(seed), walks=int(walks), bounces=int(bounces), starts=int(starts), refine=int(refine),
-                    reduced_refine=int(reduced_refine), exposure=float(exposure), interface=interface,
+                    reduced_refine=int(reduced_refine), exposure=float(exposure), interface=interface, finer=bool(finer),
                     padded_shape=shape, total_time_s=round(time.perf_counter() - t_start, 1),
                     load_average=(load_start, _load_average()))
     return AblationResult(rows=rows, fits=fits, measurements=measurements, names=names, variants=table,
