@@ -600,6 +600,22 @@ def test_finer_refinement_joins_the_starts_and_wins_only_on_its_check():
     best = int(np.argmin(bounds))
     assert result.record.check.material_chi2 == result.starts[best].material_chi2
     assert result.problem.walks == (16 * fitting.FINE_FACTOR if best == len(result.starts) - 1 else 16)
+    assert result.problem.connection == ("mis" if best == len(result.starts) - 1 else "nee")
+
+
+@pytest.mark.parametrize("variant, interface, connection", [
+    ("single_lobe", False, "mis"), ("diffusers_only", False, "nee"), ("single_lobe", True, "nee")])
+def test_finer_problem(variant, interface, connection):
+    """The finer objective: the same key, data and Jacobian walks, FINE_FACTOR times the walks, and the MIS
+    connection where there are platelets and no top interface (which MIS does not go through)."""
+    import jaxcos.inference._fit as fitting
+
+    data = _synthetic(TRUTH, START)
+    base = fitting.make_problem(data, fitting.parameterization(variant, interface=interface), key=jax.random.key(3),
+                                walks=16, jacobian_walks=8, connection="nee")
+    finer = fitting.finer_problem(base)
+    assert (finer.walks, finer.jacobian_walks, finer.connection) == (16 * fitting.FINE_FACTOR, 8, connection)
+    assert finer.key is base.key and finer.measured is base.measured and finer.param is base.param
 
 
 def test_finer_refinement_only_where_the_objective_is_rough(monkeypatch):

@@ -1414,20 +1414,34 @@ def objective_mc_share(check, walks):
     return check.chi2_mc * (check.walks / walks) / max(check.material_chi2, 1e-30)
 
 
-def refine_finer(refined, selection, problem, meas, method, budget, key, say):
-    """The finer refinement: the selected start refined again at :data:`FINE_FACTOR` times the walks.
+def finer_problem(problem):
+    """The objective of the finer refinement: ``problem`` at :data:`FINE_FACTOR` times the walks, connected by MIS.
 
-    ``problem``: the fit's objective (its key and budget); the finer one has
-    the same key and ``FINE_FACTOR`` times its walks (the first of them the
-    same walks), and its Jacobian the same walks. The result is checked like
+    The same key (the first of the walks are ``problem``'s) and the same
+    Jacobian walks. Where the material has platelets and no top interface the
+    connection becomes ``"mis"`` (:func:`~jaxcos.simulate`): the objectives
+    that are mostly their own noise are those of narrow, tilted platelet
+    lobes, whose variance sits in paths that meet the lobe more than once
+    (benchmarks/RESULTS.md, "Where the fit's noise is worst"), which the
+    MIS connection's second strategy draws.
+    """
+    mis = "alpha_p" in problem.param.names and not problem.param.interface
+    return dataclasses.replace(problem, walks=FINE_FACTOR * problem.walks,
+                               connection="mis" if mis else problem.connection)
+
+
+def refine_finer(refined, selection, problem, meas, method, budget, key, say):
+    """The finer refinement: the selected start refined again on :func:`finer_problem`.
+
+    ``problem``: the fit's objective (its key and budget). The result is checked like
     the others (:func:`_check`, keys from ``key``) and joins the refined
     starts, and becomes the selected one where its :attr:`CheckResult.bound`
     is the lowest. Returns ``(refined, selection)``, both extended.
     """
     start = refined[selection.best]
-    finer = Refiner(dataclasses.replace(problem, walks=FINE_FACTOR * problem.walks), meas, method, budget)
-    say(f"refining start {start.label} again at {finer.problem.walks} walks ({method}, {PASSES} passes) "
-        f"and checking it")
+    finer = Refiner(finer_problem(problem), meas, method, budget)
+    say(f"refining start {start.label} again at {finer.problem.walks} walks ({method}, {PASSES} passes, "
+        f"{finer.problem.connection.upper()} connection) and checking it")
     r = finer(f"{start.label}, {FINE_FACTOR}x walks", start.x)
     c, pooled = _check(r.problem, meas, r.x, key, budget.check_walks)
     return refined + [r], Selection(checks=selection.checks + (c,), pooled=selection.pooled + (pooled,))
