@@ -120,11 +120,11 @@ POLISH_STREAM = 3
 FINE_STREAM = 4
 """The check of the finer refinement (:func:`refine_finer`)."""
 FINE_FACTOR = 4
-"""The selected start is refined once more with this many times the fit's walks under the same key
-(:func:`refine_finer`), and kept where its check is better. At the fit's own walks the fixed-key objective
-is too rough to tell apart materials along a shallow valley or near a narrow lobe: on seed 2's sets 0-7 of
-the recovery benchmark the fit recovered 4 of 8 with it and 1 of 8 without, on the same data (docs/method.md,
-"The search")."""
+"""The selected start is refined once more with this many times the fit's walks under the same key,
+connected by MIS where there are platelets (:func:`finer_problem`, :func:`refine_finer`), and kept where its
+check is better. At the fit's own walks the fixed-key objective is too rough to tell apart materials along a
+shallow valley or near a narrow lobe: on seed 2's sets 0-7 of the recovery benchmark the fit recovered 5 of 8
+with it and 1 of 8 without, on the same data (docs/method.md, "The search")."""
 FINE_SHARE = 0.05
 """The finer refinement runs only where the selected start's objective is this rough: its Monte Carlo
 share (:func:`objective_mc_share`) at least this fraction of the material's chi-square. Below it, four times
