@@ -17,11 +17,12 @@ every start, ranked), the refinement of the best (:class:`Refiner`,
 :data:`PASSES` passes each), :func:`select` (every refined start checked under
 independent keys, which a fit cannot have tuned itself to; the best check
 wins), :func:`refine_finer` (the winner refined again at :data:`FINE_FACTOR`
-times the walks where its objective is rough, kept where its check is better), :func:`polish` (a last
-Gauss-Newton step on the winner's pooled check residuals, kept where a check
-under fresh keys says it is better) and :func:`summarise` (a
-:class:`FitResult` with its typed :class:`FitRecord`). Why each stage is
-there, with the measurements that decided it: docs/method.md.
+times the walks where its objective is rough, kept where its check is
+better), :func:`polish` (a last Gauss-Newton step on the winner's pooled
+check residuals, kept where a check under fresh keys says it is better) and
+:func:`summarise` (a :class:`FitResult` with its typed :class:`FitRecord`).
+Why each stage is there, with the measurements that decided it:
+docs/method.md.
 
 Parameters are mapped to unbounded coordinates so every iterate is physical
 (the fit's maps and bounds of :data:`jaxcos.model.RANGES`): ``c_d``, ``w_g``,

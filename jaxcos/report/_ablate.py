@@ -60,7 +60,7 @@ def ablation_report(result):
         f"and the default start unscreened, each reduced variant its {s['reduced_refine']} best and the default, "
         "then the start from the two-lobe fit, keeping the "
         "better by chi-square; a variant beaten by a variant nested in it is refitted from that fit"
-        + ("" if s.get("finer", True) else "; no fit's last refinement at four times the walks (`--no-finer`)")
+        + ("" if s["finer"] else "; no fit's last refinement at four times the walks (`--no-finer`)")
         + "). "
         f"Kubelka-Munk: every start refined. Total time {s['total_time_s']:.0f} s"
         + (f" (1-minute load average {s['load_average'][0]} at the start, {s['load_average'][1]} at the end, "
