@@ -142,6 +142,31 @@ def test_rerun_skips_completed_files(catalogue, inputs, cluster, capsys):
     assert (out / "a" / "params.json").stat().st_mtime_ns == kept
 
 
+def test_settings_differ_names_the_finer_refinement_and_the_interface(tmp_path):
+    """A finished result made with or without the finer refinement, or without an interface asked for now, is
+    not taken for a rerun's; a record from before the finer stage was recorded is not questioned."""
+    from jaxcos.cli._fit import _settings_differ
+
+    options = dict(variant="single_lobe", method="lm", seed=0, walks=4, bounces=4, jacobian_walks=4, interface=False,
+                   finer=True)
+    fit = dict(variant="single_lobe", method="lm", seed=0, walks=4, bounces=4, jacobian_walks=4)
+
+    def differ(params, **changed):
+        (tmp_path / "params.json").write_text(json.dumps(params))
+        return _settings_differ(str(tmp_path), {**options, **changed})
+
+    ran = dict(share=0.3, threshold=0.05, factor=4, ran=True)
+    assert differ(dict(fit={**fit, "finer": ran})) is None
+    assert differ(dict(fit={**fit, "finer": {**ran, "ran": False}})) is None  # asked for, not needed
+    assert differ(dict(fit={**fit, "finer": None})) == "holds a fit made without the finer refinement, not with it"
+    assert differ(dict(fit={**fit, "finer": ran}), finer=False) == (
+        "holds a fit made with the finer refinement, not without it")
+    assert differ(dict(fit=fit), finer=False) is None
+    assert differ(dict(fit={**fit, "finer": None}), method="powell") == "holds a fit with method lm, not powell"
+    assert "without a top interface" in differ(dict(fit={**fit, "finer": ran}), interface=True)
+    assert differ(dict(fit={**fit, "finer": ran}, interface=dict(eta=1.5, alpha_s=0.1)), interface=True) is None
+
+
 def test_bad_file_is_reported_and_the_others_finish(inputs, cluster, tmp_path, capsys):
     bad = _bad(tmp_path / "broken.csv")
     out = tmp_path / "out"

@@ -596,6 +596,7 @@ def test_finer_refinement_joins_the_starts_and_wins_only_on_its_check():
     last = result.starts[-1]
     assert last.label.endswith(f"{fitting.FINE_FACTOR}x walks")
     assert result.record.starts_refined == len(result.starts)
+    assert result.record.finer.ran and result.record.to_json()["finer"]["ran"] is True
     bounds = [s.material_chi2 + 2 * s.material_chi2_se for s in result.starts]
     best = int(np.argmin(bounds))
     assert result.record.check.material_chi2 == result.starts[best].material_chi2
@@ -633,6 +634,9 @@ def test_finer_refinement_only_where_the_objective_is_rough(monkeypatch):
     # the share: the check's own Monte Carlo chi-square, scaled from its walks to the objective's
     c = result.record.check
     assert fitting.objective_mc_share(c, 16) == pytest.approx(c.chi2_mc * c.walks / 16 / c.material_chi2)
+    # the record says so: the share at the selected start (before its polish, here none), the threshold, not run
+    assert result.record.finer == fitting.FinerStage(share=pytest.approx(fitting.objective_mc_share(c, 16)),
+                                                     threshold=np.inf, factor=fitting.FINE_FACTOR, ran=False)
     monkeypatch.undo()
     assert fitting.objective_mc_share(c, 16) >= fitting.FINE_SHARE
 
@@ -642,7 +646,7 @@ def test_fit_with_interface_writes_it(tmp_path):
     meas = _tiny()
     result = fit(meas, variant="single_lobe", walks=16, bounces=8, jacobian_walks=8, starts=1, interface=True,
                  final_step=False, finer=False)
-    assert result.material.interface is not None
+    assert result.material.interface is not None and result.record.finer is None
     assert result.record.fitted[-2:] == ("eta", "alpha_s")
     jaxcos.write_fit(result, meas, tmp_path / "out")
     data = json.loads((tmp_path / "out" / "params.json").read_text())

@@ -108,10 +108,16 @@ def fit_row(folder):
 
 def _settings_differ(folder, options):
     """How the fit in ``folder`` was made with other settings than ``options``, or ``None``."""
-    record = _read_params(folder).get("fit", {})
+    params = _read_params(folder)
+    record = params.get("fit", {})
     for key in ("variant", "method", "seed", "walks", "bounces", "jacobian_walks"):
         if key in record and record[key] != options[key]:
             return f"holds a fit with {key} {record[key]}, not {options[key]}"
+    if options["interface"] and "interface" not in params:
+        return "holds a fit without a top interface, not one with --interface"
+    if "finer" in record and options["method"] == "lm" and (record["finer"] is not None) != options["finer"]:
+        made = "without" if record["finer"] is None else "with"
+        return f"holds a fit made {made} the finer refinement, not {'without' if made == 'with' else 'with'} it"
     return None
 
 

@@ -7,6 +7,7 @@ from ._fit import (
     Budget,
     CheckResult,
     FinalStep,
+    FinerStage,
     FitBudget,
     FitRecord,
     FitResult,

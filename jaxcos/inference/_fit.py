@@ -877,6 +877,24 @@ class FinalStep:
                     check_after=None if self.check_after is None else self.check_after.to_json())
 
 
+class FinerStage(NamedTuple):
+    """Whether the fit's finer refinement (:func:`refine_finer`) ran, and why.
+
+    ``share``: the selected start's :func:`objective_mc_share`; ``threshold``:
+    :data:`FINE_SHARE`; ``factor``: :data:`FINE_FACTOR`, the walks' multiple;
+    ``ran``: ``share >= threshold``.
+    """
+
+    share: float
+    threshold: float
+    factor: int
+    ran: bool
+
+    def to_json(self):
+        """The ``"finer"`` object of a fit's record in ``params.json``."""
+        return dict(share=self.share, threshold=self.threshold, factor=self.factor, ran=self.ran)
+
+
 @dataclasses.dataclass(frozen=True)
 class FitBudget(_MCBudget):
     """The Monte Carlo budget of a fit's objective: a :class:`jaxcos.model.Budget` and the Jacobian's walks.
@@ -968,6 +986,7 @@ class FitRecord(FitSummary):
         unfinished_energy: the largest energy fraction left in unfinished walks.
         mc_error_median: the model's median Monte Carlo standard error, relative to the std where there is one.
         check: the fitted material's :class:`CheckResult`.
+        finer: the :class:`FinerStage`, or ``None`` (Powell, or ``finer=False``).
         final_step: the :class:`FinalStep`, or ``None`` (Powell, or ``final_step=False``).
     """
 
@@ -987,6 +1006,7 @@ class FitRecord(FitSummary):
     unfinished_energy: float
     mc_error_median: float
     check: CheckResult
+    finer: FinerStage | None
     final_step: FinalStep | None
 
     def to_json(self):
@@ -1001,7 +1021,8 @@ class FitRecord(FitSummary):
             connection=self.connection, fitted=list(self.fitted), fixed_starts=list(self.fixed_starts),
             starts_refined=self.starts_refined, starts_at_optimum=self.starts_at_optimum,
             unfinished_energy=self.unfinished_energy, mc_error_median=self.mc_error_median,
-            check=self.check.to_json(), final_step=None if self.final_step is None else self.final_step.to_json(),
+            check=self.check.to_json(), finer=None if self.finer is None else self.finer.to_json(),
+            final_step=None if self.final_step is None else self.final_step.to_json(),
             reduced_chi2_note=self.REDUCED_CHI2_NOTE)
         return out
 
@@ -1432,20 +1453,28 @@ def finer_problem(problem):
 
 
 def refine_finer(refined, selection, problem, meas, method, budget, key, say):
-    """The finer refinement: the selected start refined again on :func:`finer_problem`.
+    """The finer refinement: the selected start refined again on :func:`finer_problem`, where it is rough.
 
-    ``problem``: the fit's objective (its key and budget). The result is checked like
-    the others (:func:`_check`, keys from ``key``) and joins the refined
-    starts, and becomes the selected one where its :attr:`CheckResult.bound`
-    is the lowest. Returns ``(refined, selection)``, both extended.
+    ``problem``: the fit's objective (its key and budget). It runs only where
+    the selected start's :func:`objective_mc_share` is at least
+    :data:`FINE_SHARE`. The result is checked like the others (:func:`_check`,
+    keys from ``key``) and joins the refined starts, and becomes the selected
+    one where its :attr:`CheckResult.bound` is the lowest. Returns ``(refined,
+    selection, stage)``: both extended where it ran, and its :class:`FinerStage`.
     """
+    share = objective_mc_share(selection.checks[selection.best], budget.walks)
+    stage = FinerStage(share=float(share), threshold=FINE_SHARE, factor=FINE_FACTOR, ran=bool(share >= FINE_SHARE))
+    if not stage.ran:
+        say(f"no finer refinement: the objective's Monte Carlo share is {share:.2g} of its chi-square "
+            f"(below {FINE_SHARE})")
+        return refined, selection, stage
     start = refined[selection.best]
     finer = Refiner(finer_problem(problem), meas, method, budget)
     say(f"refining start {start.label} again at {finer.problem.walks} walks ({method}, {PASSES} passes, "
         f"{finer.problem.connection.upper()} connection) and checking it")
     r = finer(f"{start.label}, {FINE_FACTOR}x walks", start.x)
     c, pooled = _check(r.problem, meas, r.x, key, budget.check_walks)
-    return refined + [r], Selection(checks=selection.checks + (c,), pooled=selection.pooled + (pooled,))
+    return refined + [r], Selection(checks=selection.checks + (c,), pooled=selection.pooled + (pooled,)), stage
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1474,10 +1503,11 @@ def polish(start, check_before, pooled, meas, key, walks):
     return Polished(x=x_step, check=check_after, step=step) if kept else Polished(start.x, check_before, step)
 
 
-def summarise(meas, refined, selection, polished, *, method, variant, seed, budget, fixed, started):
+def summarise(meas, refined, selection, polished, *, method, variant, seed, budget, fixed, finer, started):
     """The summarise stage: the :class:`FitResult` of the selected start after its polish.
 
     ``polished``: a :class:`Polished`, its ``step`` ``None`` where there was none;
+    ``finer``: the :class:`FinerStage`, ``None`` where there was none;
     ``fixed``: the plan's :class:`FixedStart` (none for a given start); ``started``:
     the fit's ``time.perf_counter()`` at its start.
     """
@@ -1499,7 +1529,7 @@ def summarise(meas, refined, selection, polished, *, method, variant, seed, budg
         starts_at_optimum=_at_optimum(refined, selection.best),
         unfinished_energy=float(np.max(np.asarray(est.unfinished))),
         mc_error_median=float(np.median(model_std / (meas.std if meas.std is not None else 1.0))),
-        check=polished.check, final_step=polished.step,
+        check=polished.check, finer=finer, final_step=polished.step,
     )
     starts = [StartSummary(r.label, float(r.loss), c.material_chi2, c.material_chi2_se)
               for r, c in zip(refined, selection.checks)]
@@ -1587,14 +1617,10 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     say(f"checking {len(refined)} refined start{'s' * (len(refined) > 1)} at {budget.check_walks} walks "
         f"in {CHECK_BATCHES} batches under independent keys")
     selection = select(refined, meas, jax.random.fold_in(key, CHECK_STREAM), budget.check_walks)
+    stage = None
     if finer and method == "lm":
-        share = objective_mc_share(selection.checks[selection.best], budget.walks)
-        if share >= FINE_SHARE:
-            refined, selection = refine_finer(refined, selection, problem, meas, method, budget,
-                                              jax.random.fold_in(key, FINE_STREAM), say)
-        else:
-            say(f"no finer refinement: the objective's Monte Carlo share is {share:.2g} of its chi-square "
-                f"(below {FINE_SHARE})")
+        refined, selection, stage = refine_finer(refined, selection, problem, meas, method, budget,
+                                                 jax.random.fold_in(key, FINE_STREAM), say)
     best = refined[selection.best]
     if final_step and best.jacobian is not None:
         say(f"taking one Gauss-Newton step on the best check's pooled residuals and checking it at "
@@ -1604,4 +1630,4 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     else:
         polished = Polished(x=best.x, check=selection.checks[selection.best], step=None)
     return summarise(meas, refined, selection, polished, method=method, variant=variant, seed=seed, budget=budget,
-                     fixed=fixed, started=started)
+                     fixed=fixed, finer=stage, started=started)

@@ -72,7 +72,7 @@ def _check_section(r):
         "is the column \"material chi-square\" above (the raw chi-square would also rank materials by how noisy "
         "they are to simulate). Its standard error is the jackknife's, leaving out one batch at a time. The fit is the start "
         "for which the material chi-square plus twice its standard error is lowest.",
-    ] + _final_step_lines(r)
+    ] + _finer_lines(r) + _final_step_lines(r)
     if weighted:
         dof = r.n_points * 3 - r.n_params
         lines += [
@@ -95,6 +95,20 @@ def _check_section(r):
                       "missed the optimum (try more `--starts`, another `--seed`, or `--start` from a guess), or "
                       "the variant lacks an effect the data show (`jaxcos ablate`)."]
     return lines
+
+
+def _finer_lines(r):
+    """The report's account of the fit's finer refinement (:func:`jaxcos.inference._fit.refine_finer`; LM fits)."""
+    finer = r.finer
+    if finer is None:
+        return []
+    share = (f"Of the selected start's objective, a share of {finer.share:.2g} was its own Monte Carlo error "
+             f"(the check's, scaled to the fit's {r.budget.walks} walks, over the material chi-square)")
+    if finer.ran:
+        return ["", f"{share}, at least {finer.threshold}: that start was refined once more at "
+                f"{finer.factor} times the walks and checked like the others (the row ending \"x walks\")."]
+    return ["", f"{share}, below {finer.threshold}: {finer.factor} times the walks would change it little, and it was not "
+            "refined again."]
 
 
 def _final_step_lines(r):
