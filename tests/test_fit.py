@@ -97,6 +97,46 @@ def test_fit_started_at_truth_stays():
     assert -SLACK <= delta < CHI2_BOUND, delta
 
 
+def test_release_saturated_moves_only_coordinates_at_a_bound():
+    """Coordinates within SATURATED of a bound (logistic and tanh maps) go back to RELEASED from it; others,
+    and ``t`` (exp), stay."""
+    import jaxcos.inference._fit as fitting
+    from jaxcos.model._ranges import G_MAX
+
+    param = parameterization("two_lobe", fit_t=True)
+    labels = param.labels()
+    x = np.zeros(param.size)
+    x[labels.index("albedo_d[1]")], x[labels.index("g2")], x[labels.index("t")] = 16.0, -6.0, 40.0
+    x[labels.index("albedo_p[0]")] = 6.0  # 0.9975: near the bound, not saturated
+    released = np.asarray(fitting.release_saturated(param, jnp.asarray(x)))
+    v = np.asarray(param.to_physical(jnp.asarray(released)))
+    assert v[labels.index("albedo_d[1]")] == pytest.approx(1.0 - fitting.RELEASED, rel=1e-5)
+    assert v[labels.index("g2")] == pytest.approx(-G_MAX * (1.0 - 2 * fitting.RELEASED), rel=1e-5)
+    keep = [i for i, n in enumerate(labels) if n not in ("albedo_d[1]", "g2")]
+    np.testing.assert_array_equal(released[keep], x[keep])
+    same = jnp.asarray(released)
+    assert fitting.release_saturated(param, same) is same
+
+
+@pytest.mark.slow
+def test_a_start_at_a_bound_is_released(monkeypatch):
+    """From a start whose albedos have run to 1 (where the logistic map's slope vanishes), the fit still
+    reaches the truth's region; without the release it stays there, far outside it."""
+    import jaxcos.inference._fit as fitting
+
+    data = _synthetic(TRUTH, START)
+    start = jaxcos.Material(layers=(dataclasses.replace(START.layers[0], albedo_d=(1.0, 1.0, 1.0)),),
+                            variant="single_lobe")
+    options = dict(variant="single_lobe", walks=WALKS, bounces=BOUNCES, seed=SEED, start=start, finer=False,
+                   final_step=False)
+    delta = _delta_chi2(fit(data, **options))
+    assert -SLACK <= delta < CHI2_BOUND, delta
+    monkeypatch.setattr(fitting, "release_saturated", lambda param, x: x)
+    stuck = fit(data, **options)
+    assert np.all(np.asarray(stuck.material.layers[0].albedo_d) > 0.99)
+    assert _delta_chi2(stuck) < -CHI2_BOUND  # the truth scores far better than where the fit stuck
+
+
 @pytest.mark.slow
 def test_multi_start_finds_steeply_tilted_platelets():
     """With no start given, the fit finds platelets tilted by 70 degrees (the random starts span the tilts).
