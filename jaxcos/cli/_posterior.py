@@ -16,14 +16,13 @@ def start_from_params(meas, path, *, seed=0, progress=None):
     """A :class:`~jaxcos.FitResult` of ``meas`` refined by Levenberg-Marquardt from the params.json at ``path``.
 
     The fitted set of parameters (``t``, ``phi_p``) follows the file's
-    ``"fit"`` record when it has one. Without the fit's finer refinement: the
-    posterior's anchor search refines further at many more walks.
+    ``"fit"`` record when it has one.
     """
     material = load_params(path)
     with open(path, encoding="utf-8") as fh:
         fitted = json.load(fh).get("fit", {}).get("fitted", [])
     return fit(meas, variant=material.variant, seed=seed, start=material, fit_t="t" in fitted,
-               fit_phi="phi_p" in fitted, t=float(material.layers[0].t), finer=False, progress=progress)
+               fit_phi="phi_p" in fitted, t=float(material.layers[0].t), progress=progress)
 
 
 def _cmd(args):
@@ -41,7 +40,7 @@ def _cmd(args):
             raise InputError(f"{args.params}: no such file.")
         start = start_from_params(meas, args.params, seed=args.seed, progress=say)
     else:
-        start = fit(meas, seed=args.seed, finer=False, progress=say)
+        start = fit(meas, seed=args.seed, progress=say)
     post = uncertainty(meas, start, seed=args.seed, walkers=args.walkers, max_steps=args.steps, progress=say)
     paths = write_uncertainty(post, meas, args.out, force=args.force)
     worst = min(post.summary, key=lambda k: post.summary[k]["ess"])

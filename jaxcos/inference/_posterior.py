@@ -908,9 +908,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
     Args:
         meas: from :func:`jaxcos.load_measurements`.
         fit_result: a :class:`~jaxcos.FitResult` of ``meas`` to start from; by
-            default :func:`jaxcos.fit` runs first, without its finer refinement
-            (``finer=False``): the anchor search (:func:`find_anchor`) refines
-            the fit further, at ``hi_walks``.
+            default :func:`jaxcos.fit` runs first.
         seed: seeds the Monte Carlo keys and the sampler.
         walkers, max_steps: the ensemble (by default :data:`WALKERS`, or
             ``2 P + 2`` for ``P`` parameters where that is more: a two-lobe
@@ -931,7 +929,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     if fit_result is None:
-        fit_result = fit(meas, seed=seed, finer=False, progress=progress)
+        fit_result = fit(meas, seed=seed, progress=progress)
     param = fit_result.param
     low, high = param.bounds()
     # A float32 fit can sit a rounding below a bound that float32 cannot hold (eta 1.01, alpha_s 0.005): the
