@@ -676,7 +676,8 @@ def test_finer_refinement_only_where_the_objective_is_rough(monkeypatch):
     assert fitting.objective_mc_share(c, 16) == pytest.approx(c.chi2_mc * c.walks / 16 / c.material_chi2)
     # the record says so: the share at the selected start (before its polish, here none), the threshold, not run
     assert result.record.finer == fitting.FinerStage(share=pytest.approx(fitting.objective_mc_share(c, 16)),
-                                                     threshold=np.inf, factor=fitting.FINE_FACTOR, ran=False)
+                                                     threshold=np.inf, factor=fitting.FINE_FACTOR)
+    assert result.record.finer.ran is False
     monkeypatch.undo()
     assert fitting.objective_mc_share(c, 16) >= fitting.FINE_SHARE
 

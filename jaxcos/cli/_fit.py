@@ -116,8 +116,8 @@ def _settings_differ(folder, options):
     if options["interface"] and "interface" not in params:
         return "holds a fit without a top interface, not one with --interface"
     if "finer" in record and options["method"] == "lm" and (record["finer"] is not None) != options["finer"]:
-        made = "without" if record["finer"] is None else "with"
-        return f"holds a fit made {made} the finer refinement, not {'without' if made == 'with' else 'with'} it"
+        made, asked = ("with", "without") if record["finer"] is not None else ("without", "with")
+        return f"holds a fit made {made} the finer refinement, not {asked} it"
     return None
 
 

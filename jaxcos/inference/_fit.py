@@ -913,14 +913,17 @@ class FinerStage(NamedTuple):
     """Whether the fit's finer refinement (:func:`refine_finer`) ran, and why.
 
     ``share``: the selected start's :func:`objective_mc_share`; ``threshold``:
-    :data:`FINE_SHARE`; ``factor``: :data:`FINE_FACTOR`, the walks' multiple;
-    ``ran``: ``share >= threshold``.
+    :data:`FINE_SHARE`; ``factor``: :data:`FINE_FACTOR`, the walks' multiple.
     """
 
     share: float
     threshold: float
     factor: int
-    ran: bool
+
+    @property
+    def ran(self):
+        """Whether the finer refinement ran: ``share >= threshold``."""
+        return bool(self.share >= self.threshold)
 
     def to_json(self):
         """The ``"finer"`` object of a fit's record in ``params.json``."""
@@ -1498,7 +1501,7 @@ def refine_finer(refined, selection, problem, meas, method, budget, key, say):
     selection, stage)``: both extended where it ran, and its :class:`FinerStage`.
     """
     share = objective_mc_share(selection.checks[selection.best], budget.walks)
-    stage = FinerStage(share=float(share), threshold=FINE_SHARE, factor=FINE_FACTOR, ran=bool(share >= FINE_SHARE))
+    stage = FinerStage(share=float(share), threshold=FINE_SHARE, factor=FINE_FACTOR)
     if not stage.ran:
         say(f"no finer refinement: the objective's Monte Carlo share is {share:.2g} of its chi-square "
             f"(below {FINE_SHARE})")

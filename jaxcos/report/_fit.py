@@ -107,8 +107,8 @@ def _finer_lines(r):
     if finer.ran:
         return ["", f"{share}, at least {finer.threshold}: that start was refined once more at "
                 f"{finer.factor} times the walks and checked like the others (the row ending \"x walks\")."]
-    return ["", f"{share}, below {finer.threshold}: {finer.factor} times the walks would change it little, and it was not "
-            "refined again."]
+    return ["", f"{share}, below {finer.threshold}: {finer.factor} times the walks would change it little, and it "
+            "was not refined again."]
 
 
 def _final_step_lines(r):
