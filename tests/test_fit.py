@@ -14,8 +14,8 @@ import jaxcos
 from jaxcos.cli import main
 import optimistix as optx
 
-from jaxcos.inference._fit import (LevenbergMarquardt, check, fit, highlight_tilt, make_problem, narrow_highlight,
-                         parameterization, random_starts)
+from jaxcos.inference._fit import (LevenbergMarquardt, check, fit, highlight_tilt, highlight_width, make_problem,
+                                  narrow_highlight, parameterization, random_starts)
 from jaxcos._errors import InputError
 from jaxcos.io._measurements import Measurements
 
@@ -346,6 +346,30 @@ def test_highlight_tilt_finds_a_near_mirror_highlight():
     meas = dataclasses.replace(meas, values=np.pi * np.asarray(est.f, float))
     assert not narrow_highlight(meas)
     assert connection(meas) == "nee"
+
+
+@pytest.mark.parametrize("alpha", [0.01, 0.03, 0.1])
+def test_highlight_width_bounds_the_lobe(alpha):
+    """The width bound holds whatever the lobe's place between the sampled directions, and is tight on it.
+
+    Platelets tilted by 10 degrees put the lobe's centre on the 2-degree viewing grid at every incidence;
+    by 10.5 degrees, halfway between two directions, where the two brightest points are nearly equal.
+    """
+    def width(theta_p):
+        layer = jaxcos.Layer(t=16.0, c_d=0.5, albedo_d=0.8, g1=0.5, g2=0.0, w_g=1.0, albedo_p=0.8, alpha_p=alpha,
+                             theta_p=theta_p)
+        ti = np.repeat([10.0, 20.0, 30.0], 75)
+        to = np.tile(np.arange(-60.0, 89.0, 2.0), 3)
+        est = jaxcos.simulate(jaxcos.Material(layers=(layer,)), jaxcos.make_query(ti, to), jax.random.key(0),
+                              walks=64, bounces=16)
+        return highlight_width(Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros_like(ti),
+                                            values=np.pi * np.asarray(est.f, float), std=None,
+                                            quantity="reflectance_factor", metadata={}, path="lobe.csv"))
+
+    centred, between = width(10.0), width(10.5)
+    assert alpha <= centred and alpha <= between
+    # on the grid, only the diffusers' light under the lobe loosens the bound (more so as the lobe widens)
+    assert centred <= (1.1 if alpha < 0.05 else 1.5) * alpha
 
 
 @pytest.mark.parametrize("name, narrow", [("dewy1", False), ("dewy2", True), ("matte1", False), ("matte2", False)])

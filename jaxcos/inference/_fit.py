@@ -694,12 +694,28 @@ def solve_powell(problem, x0, *, max_evaluations=20000, xtol=1e-4, ftol=1e-8, on
 # --- starts -----------------------------------------------------------------------
 
 
-def _highlights(meas):
-    """Per incidence with at least five in-plane points: ``(theta_i, theta_o of its brightest point, ratio)``.
+class Highlight(NamedTuple):
+    """The brightest in-plane point of one incidence (:func:`_highlights`).
 
-    ``ratio``: the brightest point's value (mean of r, g, b) over the larger of its
-    neighbours' in ``theta_o`` (signed, negative on the light's side). Points with an
-    infinite std (the padding of ``jaxcos.inference.pad_measurements``) are not measured.
+    Attributes:
+        theta_i: the incidence (degrees).
+        theta_o: the brightest point's viewing angle, signed (negative on the light's side).
+        ratio: its value (mean of r, g, b) over the larger of its neighbours' in ``theta_o``.
+        spacing: the distance in ``theta_o`` to that neighbour (degrees).
+        interior: whether it has a neighbour on both sides (not at an end of the measured range).
+    """
+
+    theta_i: float
+    theta_o: float
+    ratio: float
+    spacing: float
+    interior: bool
+
+
+def _highlights(meas):
+    """The :class:`Highlight` of each incidence with at least five in-plane points.
+
+    Points with an infinite std (the padding of ``jaxcos.inference.pad_measurements``) are not measured.
     """
     inplane = np.isclose(np.asarray(meas.phi_o, float) % 180.0, 0.0)
     if meas.std is not None:
@@ -714,8 +730,10 @@ def _highlights(meas):
         order = np.argsort(to)
         to, v = to[order], values[sel][order]
         k = int(np.argmax(v))
-        neighbours = np.concatenate([v[max(k - 1, 0):k], v[k + 1:k + 2]])
-        out.append((float(ti), float(to[k]), float(v[k] / max(np.max(neighbours), 1e-30))))
+        near = [j for j in (k - 1, k + 1) if 0 <= j < v.size]
+        n = max(near, key=lambda j: v[j])
+        out.append(Highlight(theta_i=float(ti), theta_o=float(to[k]), ratio=float(v[k] / max(v[n], 1e-30)),
+                             spacing=float(abs(to[n] - to[k])), interior=len(near) == 2))
     return out
 
 
@@ -729,7 +747,7 @@ def highlight_tilt(meas):
     A narrow highlight (``alpha_p`` of a few thousandths) is invisible to a
     random start: its basin is a fraction of a degree wide in ``theta_p``.
     """
-    tilts = [0.5 * (to - ti) for ti, to, _ in _highlights(meas)]
+    tilts = [0.5 * (h.theta_o - h.theta_i) for h in _highlights(meas)]
     if not tilts:
         return None
     return float(np.clip(np.median(tilts), 0.0, 89.0))
@@ -744,8 +762,28 @@ def narrow_highlight(meas):
     fall off gradually. Such data get the estimator's MIS connection
     (:func:`make_problem`) and a near-mirror start (:func:`fit`).
     """
-    ratios = [r for _, _, r in _highlights(meas)]
+    ratios = [h.ratio for h in _highlights(meas)]
     return bool(ratios) and float(np.median(ratios)) > NARROW_RATIO
+
+
+def highlight_width(meas):
+    """The broadest platelet roughness ``alpha_p`` that the measured highlight allows, or ``None``.
+
+    A GGX lobe falls from its peak to a half-vector ``theta_h`` away by
+    ``D(0) / D(theta_h) = cos^4 theta_h (1 + tan^2 theta_h / alpha^2)^2``
+    (docs/model.md section 2), and a viewing step of ``d`` turns the in-plane
+    half vector by ``d / 2``. A brightest point ``R`` times its brighter
+    neighbour, ``d`` away, so bounds the roughness by
+    ``alpha <= tan(d / 2) / sqrt(sqrt(R) - 1)``: a lobe whose centre lies
+    between the two points, or a diffuse background under it, would need a
+    narrower lobe for the same ratio. The result is the median of that bound
+    over the incidences whose brightest point has a measured neighbour on both
+    sides and exceeds them; where the sampling is coarse it is a loose bound
+    (nine times the lobe's ``alpha_p`` on a 10-degree grid, in the sets measured), on a fine one close.
+    """
+    bounds = [np.tan(np.radians(0.5 * h.spacing)) / np.sqrt(np.sqrt(h.ratio) - 1.0)
+              for h in _highlights(meas) if h.interior and h.ratio > 1.0 and h.spacing > 0]
+    return float(np.median(bounds)) if bounds else None
 
 
 class FixedStart(NamedTuple):
@@ -773,6 +811,21 @@ def fixed_starts(starts, t, tilt, connection):
         out.append(FixedStart("near-mirror", "near-mirror platelets at the highlight's tilt",
                               {**_DEFAULT, "t": t, **_MIRROR_START, "theta_p": tilt}))
     return out
+
+
+def highlight_start(t, tilt, width):
+    """The :class:`FixedStart` ``"highlight"``: platelets at the tilt ``tilt``, as broad as ``width`` allows.
+
+    ``width`` from :func:`highlight_width`, kept within the near-mirror and
+    broad platelet starts' roughnesses. Refined unscreened beside the
+    near-mirror start: from the broad side a solver narrows a lobe smoothly,
+    where a near-mirror lobe that falls between the sampled directions of a
+    coarse grid barely changes the objective as it widens (docs/method.md,
+    "Near-mirror highlights").
+    """
+    alpha = float(np.clip(width, _MIRROR_START["alpha_p"], _PLATELET_START["alpha_p"]))
+    return FixedStart("highlight", "platelets as broad as the highlight allows, at its tilt",
+                      {**_DEFAULT, "t": t, "alpha_p": alpha, "theta_p": tilt})
 
 
 def random_starts(param, n, rng, tilt=None):
@@ -1066,9 +1119,9 @@ class StartSummary(NamedTuple):
     """One refined start of a fit: its label, its final loss and its check's material chi-square with SE.
 
     The label is the screened start's index (0: the default start), ``"given"``, or
-    ``"default, unscreened"`` (``"near-mirror, unscreened"`` where the highlight is
-    narrower than the angular sampling); a start refined from another one adds to
-    its label ``", one lobe"`` (:func:`refine_one_lobe`) or ``", 4x walks"``
+    ``"default, unscreened"`` (``"near-mirror, unscreened"`` and ``"highlight, unscreened"`` where the
+    highlight is narrower than the angular sampling); a start refined from another one adds to
+    its label ``", one lobe"`` or ``", other lobes"`` (:func:`refine_phase`) or ``", 4x walks"``
     (:func:`refine_finer`).
     """
 
@@ -1309,32 +1362,41 @@ class Refiner:
 
 @dataclasses.dataclass(frozen=True)
 class StartPlan:
-    """The multi-start: the screen's fixed starts, its pool, and the start refined unscreened beside it.
+    """The multi-start: the screen's fixed starts, its pool, and the starts refined unscreened beside it.
 
     Attributes:
         fixed: the :class:`FixedStart` of each fixed start, first in the pool.
         pool: ``(S, P)`` every start the screen runs, fixed ones then random ones.
-        unscreened: the key of the fixed start refined unscreened: ``"near-mirror"`` where
-            there is one (the screen's small budget can lead it astray), else ``"default"``.
-        x_unscreened: its unbounded coordinates.
+        unscreened: the keys of the starts refined unscreened: ``"near-mirror"``, and
+            ``"highlight"`` (:func:`highlight_start`) where the highlight bounds its
+            width, where there is a near-mirror start (the screen's small budget can
+            lead it astray); else ``"default"``.
+        x_unscreened: their unbounded coordinates.
     """
 
     fixed: tuple
     pool: jnp.ndarray
-    unscreened: str
-    x_unscreened: jnp.ndarray
+    unscreened: tuple
+    x_unscreened: tuple
 
 
 def plan_starts(meas, param, connection, *, starts, t, rng):
     """The :class:`StartPlan` of ``starts`` screened starts besides the default one (:func:`fit`)."""
     tilt = highlight_tilt(meas) if "theta_p" in param.names else None
     fixed = tuple(fixed_starts(starts, t, tilt, connection))
-    xs = [param.from_material(Material(layers=(Layer(**f.values),))) for f in fixed]
-    # The screen's budget is blind to a near-mirror lobe: refined unscreened, its start does not depend
-    # on the screen (docs/method.md, "Near-mirror highlights").
-    i = len(fixed) - 1 if fixed[-1].key == "near-mirror" else 0
+    to_x = lambda f: param.from_material(Material(layers=(Layer(**f.values),)))
+    xs = [to_x(f) for f in fixed]
     pool = jnp.concatenate([jnp.stack(xs), random_starts(param, starts + 1 - len(fixed), rng, tilt)])
-    return StartPlan(fixed=fixed, pool=pool, unscreened=fixed[i].key, x_unscreened=xs[i])
+    # The screen's budget is blind to a narrow lobe: refined unscreened, these starts do not depend on the
+    # screen (docs/method.md, "Near-mirror highlights").
+    if fixed[-1].key != "near-mirror":
+        return StartPlan(fixed=fixed, pool=pool, unscreened=("default",), x_unscreened=(xs[0],))
+    unscreened = [fixed[-1]]
+    width = highlight_width(meas)
+    if width is not None:
+        unscreened.append(highlight_start(t, tilt, width))
+    return StartPlan(fixed=fixed, pool=pool, unscreened=tuple(f.key for f in unscreened),
+                     x_unscreened=tuple(to_x(f) for f in unscreened))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1360,71 +1422,97 @@ def screen(problem, pool, key, *, refine):
     return Screened(ends=ends, ranks=ranks, order=[int(i) for i in np.argsort(ranks)[:refine]])
 
 
-def one_lobe(param, x):
-    """``x`` with its two diffuser lobes made one: ``g1 = g2`` at their mean cosine ``w_g g1 + (1 - w_g) g2``.
+PHASE_GRID = dict(g1=(0.2, 0.4, 0.6, 0.8), g2=(-0.6, -0.3, 0.0), w_g=(0.6, 0.8, 0.95))
+"""The two-lobe phase functions that :func:`phase_moves` puts in place of a refined start's own: from
+forward to nearly isotropic front lobes, from strong to no back lobes, over the priors' weights."""
 
-    ``None`` where ``param`` does not fit both lobes and their weight. A single-lobe
-    material (``w_g = 1``, the bound of ``w_g``'s map) fitted with two lobes can end with two
-    opposed lobes (``g1 = -g2``) of about the right mean cosine, from which
-    Levenberg-Marquardt does not bring them together (docs/method.md, "The search").
+
+def phase_moves(param, x):
+    """``(labels, xs)``: ``x`` with its diffuser phase function replaced, ``xs`` of shape ``(C, P)``.
+
+    First ``"one lobe"``: both lobes made one, ``g1 = g2`` at their mean cosine
+    ``w_g g1 + (1 - w_g) g2`` with ``w_g`` kept; then ``"other lobes"``, each
+    ``(g1, g2, w_g)`` of :data:`PHASE_GRID`; every other parameter kept.
+    ``None`` where ``param`` does not fit both lobes and their weight. The
+    phase function's basins are separated by ridges that Levenberg-Marquardt
+    does not cross with the rest held near the optimum: a single-lobe material
+    (``w_g = 1``, the bound of ``w_g``'s map) fitted with two can end with two
+    opposed lobes (``g1 = -g2``) of about the right mean cosine, and a two-lobe
+    one with its lobes traded against the platelets' albedo (docs/method.md, "The search").
     """
     if not {"g1", "g2", "w_g"} <= set(param.names):
         return None
     labels = param.labels()
     v = np.asarray(param.to_physical(x), float)
     i1, i2, iw = labels.index("g1"), labels.index("g2"), labels.index("w_g")
-    v[i1] = v[i2] = v[iw] * v[i1] + (1.0 - v[iw]) * v[i2]
-    return param.from_material(param.physical_to_material(jnp.asarray(v, x.dtype)))
+    mean = v[iw] * v[i1] + (1.0 - v[iw]) * v[i2]
+    phases = [(mean, mean, v[iw])] + [(g1, g2, w) for g1 in PHASE_GRID["g1"] for g2 in PHASE_GRID["g2"]
+                                      for w in PHASE_GRID["w_g"]]
+    vs = np.repeat(v[None], len(phases), axis=0)
+    vs[:, [i1, i2, iw]] = phases
+    xs = jnp.stack([param.from_material(param.physical_to_material(jnp.asarray(u, x.dtype))) for u in vs])
+    return ["one lobe"] + ["other lobes"] * (len(phases) - 1), xs
 
 
-def refine_one_lobe(refined, refiner, say):
-    """The refine stage's last move: a refined start with one diffuser lobe, refined where that is better.
+@eqx.filter_jit
+def _losses(problem, xs):
+    return jax.vmap(problem.loss)(xs)
 
-    Each refined start is evaluated on its own objective with its lobes made one
-    (:func:`one_lobe`); the one whose loss that lowers most, relative to its
-    own, is refined from there too (:data:`PASSES` passes) and joins the
-    refined starts for :func:`select` to judge (its loss under another start's
+
+def refine_phase(refined, refiner, say):
+    """The refine stage's last moves: refined starts with another diffuser phase function, refined where better.
+
+    Each refined start is evaluated on its own objective at its
+    :func:`phase_moves`. Of each kind of move (one lobe, other lobes), the one
+    that lowers a start's loss most, relative to its own, is refined from
+    there too (:data:`PASSES` passes) where it lowers it at all, and joins the
+    refined starts for :func:`select` to judge (a loss under another start's
     weights says little about the check). Returns the new
-    :class:`RefinedStart` in a list, or an empty list where no start fits
-    better with one lobe.
+    :class:`RefinedStart` of each, one lobe first.
     """
-    gains = []
+    best = {}
     for r in refined:
-        x = one_lobe(r.problem.param, r.x)
-        if x is not None:
-            loss = float(r.problem.loss(x))
-            if np.isfinite(loss) and loss < r.loss:
-                gains.append((loss / r.loss, r, x))
-    if not gains:
-        return []
-    _, start, x = min(gains, key=lambda g: g[0])
-    say(f"refining start {start.label} with one diffuser lobe, where it fits better")
-    return [refiner(f"{start.label}, one lobe", x)]
+        moves = phase_moves(r.problem.param, r.x)
+        if moves is None:
+            continue
+        names, xs = moves
+        losses = np.asarray(_losses(r.problem, xs), float)
+        for name, loss, x in zip(names, losses, xs):
+            ratio = loss / r.loss
+            if np.isfinite(ratio) and ratio < 1.0 and ratio < best.get(name, (np.inf,))[0]:
+                best[name] = (ratio, r, x)
+    out = []
+    for name, (_, start, x) in best.items():
+        say(f"refining start {start.label} with {'one diffuser lobe' if name == 'one lobe' else 'other diffuser lobes'}"
+            ", where it fits better")
+        out.append(refiner(f"{start.label}, {name}", x))
+    return out
 
 
 def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, say):
-    """The screen and the refinement of its best ``refine`` ends, the plan's unscreened start refined meanwhile.
+    """The screen and the refinement of its best ``refine`` ends, the plan's unscreened starts refined meanwhile.
 
-    The unscreened start is refined in a second thread while the screen runs:
-    its tracing and compiling, which leave a core idle, overlap the screen's.
-    Then one of them is refined once more with one diffuser lobe, where that
-    fits better (:func:`refine_one_lobe`). Returns the :class:`RefinedStart`
-    of each, the screened ones first, the one-lobe one last.
+    The unscreened starts are refined in other threads while the screen runs:
+    their tracing and compiling, which leave a core idle, overlap the screen's.
+    Then one of them is refined once more with another diffuser phase
+    function, where that fits better (:func:`refine_phase`). Returns the :class:`RefinedStart`
+    of each, the screened ones first, the moved one last.
     """
     screen_problem = dataclasses.replace(problem, walks=budget.screen_walks, bounces=budget.screen_bounces,
                                          jacobian_walks=None)
-    say(f"refining the {plan.unscreened} start unscreened ({method}, {PASSES} passes) while screening "
-        f"{plan.pool.shape[0]} starts with a short Levenberg-Marquardt at {screen_problem.walks} walks and "
-        f"{screen_problem.bounces} bounces")
-    unscreened = _in_background(refiner, f"{plan.unscreened}, unscreened", plan.x_unscreened)
+    say(f"refining the {' and '.join(plan.unscreened)} start{'s' * (len(plan.unscreened) > 1)} unscreened "
+        f"({method}, {PASSES} passes) while screening {plan.pool.shape[0]} starts with a short "
+        f"Levenberg-Marquardt at {screen_problem.walks} walks and {screen_problem.bounces} bounces")
+    unscreened = [_in_background(refiner, f"{name}, unscreened", x)
+                  for name, x in zip(plan.unscreened, plan.x_unscreened)]
     try:
         screened = screen(screen_problem, plan.pool, jax.random.fold_in(key, SCREEN_STREAM), refine=refine)
         say(f"refining the best {len(screened.order)} screened start{'s' * (len(screened.order) > 1)} "
             f"({method}, {PASSES} passes)")
-        refined = [refiner(str(i), screened.ends[i]) for i in screened.order] + [unscreened.result()]
-        return refined + refine_one_lobe(refined, refiner, say)
+        refined = [refiner(str(i), screened.ends[i]) for i in screened.order] + [u.result() for u in unscreened]
+        return refined + refine_phase(refined, refiner, say)
     finally:
-        refiner.stop.set()  # an interrupted fit leaves its background start after the pass it is in
+        refiner.stop.set()  # an interrupted fit leaves its background starts after the pass they are in
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1600,8 +1688,8 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
             (:func:`screen`).
         refine: number of best screened starts refined at the full budget
             (:data:`PASSES` passes each), besides the default start as it is
-            (the near-mirror start where the highlight is narrow), which is
-            refined in a second thread while the screen runs
+            (the near-mirror start and :func:`highlight_start` where the
+            highlight is narrow), refined in other threads while the screen runs
             (:func:`screen_and_refine`); each is then checked with
             :data:`CHECK_FACTOR` times the walks under independent keys, and
             the best check is the fit (:func:`select`), after a last step on
