@@ -787,7 +787,7 @@ def highlight_width(meas):
 
 
 class FixedStart(NamedTuple):
-    """A fixed start of the fit (screened, or refined unscreened): its key, what it is, its :class:`~jaxcos.Layer` values."""
+    """A fixed start of the fit, screened or refined unscreened: its key, what it is, its ``Layer`` values."""
 
     key: str
     description: str
