@@ -1494,9 +1494,10 @@ def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, sa
 
     The unscreened starts are refined in other threads while the screen runs:
     their tracing and compiling, which leave a core idle, overlap the screen's.
-    Then one of them is refined once more with another diffuser phase
-    function, where that fits better (:func:`refine_phase`). Returns the :class:`RefinedStart`
-    of each, the screened ones first, the moved one last.
+    Then the best one-lobe point and the best other phase function of them
+    are refined too, where they fit better (:func:`refine_phase`). Returns
+    the :class:`RefinedStart` of each, the screened ones first, the moved ones
+    last.
     """
     screen_problem = dataclasses.replace(problem, walks=budget.screen_walks, bounces=budget.screen_bounces,
                                          jacobian_walks=None)
