@@ -178,6 +178,10 @@ def write_reports(args, records):
                 f"[{s95[0]:.3f}, {s95[1]:.3f}] | {len(ident)} | {i68} | {i95} |")
 
     lines.append(row("all", pairs))
+    variants = {r["set"]: r["variant"] for r in sets}
+    if len(set(variants.values())) > 1:  # a posterior's width depends on the variant: each on its own
+        for v in sorted(set(variants.values())):
+            lines.append(row(f"all, {v.replace('_', '-')} sets", [x for x in pairs if variants[x[0]] == v]))
     for g in groups:
         lines.append(row(f"`{g}`", [x for x in pairs if _group(x[1]) == g]))
     lines += ["", "| set | variant | product | points | converged | chain in tau | min ESS | time s | held at 68% | "
@@ -197,11 +201,11 @@ def write_reports(args, records):
                   + ", ".join(f"{r['noise_relative']:.3g}" for r in sets) + "; absolute "
                   + ", ".join(f"{r['noise_absolute']:.2g}" for r in sets) + "."]
     (out / "summary.md").write_text("\n".join(x for x in lines if x is not None) + "\n")
-    _figure(pairs, identified, groups, out / "coverage.png")
+    _figure(pairs, identified, groups, variants, out / "coverage.png")
     return pairs
 
 
-def _figure(pairs, identified, groups, path):
+def _figure(pairs, identified, groups, variants, path):
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(9, 4.2), constrained_layout=True)
@@ -219,6 +223,11 @@ def _figure(pairs, identified, groups, path):
     if identified:
         ax.plot(LEVELS, coverage_curve([p["pit"] for _, _, p in identified]), ".--", color="tab:blue",
                 label=f"identified ({len(identified)} pairs)")
+    if len(set(variants.values())) > 1:
+        for v, colour in zip(sorted(set(variants.values())), ("tab:orange", "tab:green")):
+            chosen = [p["pit"] for s, _, p in pairs if variants[s] == v]
+            ax.plot(LEVELS, coverage_curve(chosen), ".:", color=colour,
+                    label=f"{v.replace('_', '-')} sets ({len(chosen)} pairs)")
     ax.legend(fontsize=8, loc="upper left")
     ax.set_title("all parameters")
     for g in groups:
