@@ -348,6 +348,26 @@ def test_highlight_tilt_finds_a_near_mirror_highlight():
     assert connection(meas) == "nee"
 
 
+def test_highlight_tilt_between_the_viewing_directions():
+    """A lobe between two viewing directions of a 10-degree grid: its tilt within a degree, not the grid's 2.5.
+
+    The lobe of platelets tilted by 18.5 degrees peaks at theta_o = theta_i + 37, between the
+    directions 30 and 40 (and 40 and 50, ...); the brightest point alone gives 15 or 20. The
+    brightest point at the end of a range says nothing of where the lobe peaks beyond it, and is
+    left out where another incidence's is not.
+    """
+    layer = jaxcos.Layer(t=16.0, c_d=0.7, albedo_d=0.8, g1=0.5, g2=0.0, w_g=1.0, albedo_p=0.9, alpha_p=0.05,
+                         theta_p=18.5)
+    ti = np.repeat([0.0, 10.0, 20.0, 50.0], 16)
+    to = np.tile(np.arange(-70.0, 90.0, 10.0), 4)
+    est = jaxcos.simulate(jaxcos.Material(layers=(layer,)), jaxcos.make_query(ti, to), jax.random.key(0),
+                          walks=1024, bounces=16)
+    meas = Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros_like(ti), values=np.pi * np.asarray(est.f, float),
+                        std=None, quantity="reflectance_factor", metadata={}, path="lobe.csv")
+    # theta_i 50 peaks beyond the last direction (87 > 80): its brightest point is the range's end
+    assert abs(highlight_tilt(meas) - 18.5) <= 1.0
+
+
 @pytest.mark.parametrize("alpha", [0.01, 0.03, 0.1])
 def test_highlight_width_bounds_the_lobe(alpha):
     """The width bound holds whatever the lobe's place between the sampled directions, and is tight on it.

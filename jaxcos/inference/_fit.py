@@ -703,6 +703,9 @@ class Highlight(NamedTuple):
         ratio: its value (mean of r, g, b) over the larger of its neighbours' in ``theta_o``.
         spacing: the distance in ``theta_o`` to that neighbour (degrees).
         interior: whether it has a neighbour on both sides (not at an end of the measured range).
+        peak: where the highlight peaks between the neighbours (degrees, signed as ``theta_o``):
+            the vertex of the parabola through the logarithms of the three values where
+            ``interior``, else ``theta_o``.
     """
 
     theta_i: float
@@ -710,6 +713,7 @@ class Highlight(NamedTuple):
     ratio: float
     spacing: float
     interior: bool
+    peak: float
 
 
 def _highlights(meas):
@@ -732,9 +736,41 @@ def _highlights(meas):
         k = int(np.argmax(v))
         near = [j for j in (k - 1, k + 1) if 0 <= j < v.size]
         n = max(near, key=lambda j: v[j])
+        interior = len(near) == 2
         out.append(Highlight(theta_i=float(ti), theta_o=float(to[k]), ratio=float(v[k] / max(v[n], 1e-30)),
-                             spacing=float(abs(to[n] - to[k])), interior=len(near) == 2))
+                             spacing=float(abs(to[n] - to[k])), interior=interior,
+                             peak=_vertex(to[k - 1:k + 2], v[k - 1:k + 2]) if interior else float(to[k])))
     return out
+
+
+def _vertex(x, v):
+    """The abscissa of the vertex of the parabola through ``(x, log v)`` at three points, the middle one the highest.
+
+    Within ``[x[0], x[2]]``; ``x[1]`` where the three are not concave (equal
+    values, a plateau). For a lobe that falls off like a Gaussian in the
+    viewing angle it is exact; a narrower one still peaks on the side of its
+    brighter neighbour, by up to half a viewing step.
+    """
+    y = np.log(np.maximum(np.asarray(v, float), 1e-30))
+    x = np.asarray(x, float)
+    d1, d2 = (y[1] - y[0]) / (x[1] - x[0]), (y[2] - y[1]) / (x[2] - x[1])
+    curvature = (d2 - d1) / (x[2] - x[0])
+    if not curvature < 0.0:
+        return float(x[1])
+    # y' = 0 where the secant slopes, taken at the intervals' midpoints, interpolate to zero
+    vertex = 0.5 * (x[0] + x[1]) - d1 / (2.0 * curvature)
+    return float(np.clip(vertex, x[0], x[2]))
+
+
+def _peaks(meas):
+    """The :func:`_highlights` with a measured neighbour on both sides, or all of them where none has one.
+
+    A brightest point at an end of the measured range says little of where
+    the lobe peaks (it may lie beyond the range) or how narrow it is (its one
+    neighbour may be on the lobe's rising side).
+    """
+    highlights = _highlights(meas)
+    return [h for h in highlights if h.interior] or highlights
 
 
 def highlight_tilt(meas):
@@ -742,12 +778,16 @@ def highlight_tilt(meas):
 
     Mirror-like platelets tilted by ``theta_p`` in the plane of incidence
     reflect at ``theta_o = theta_i + 2 theta_p`` (docs/model.md section 2). For each
-    incidence with at least five in-plane points, its brightest point (mean of
-    r, g, b) gives one estimate; the result is their median.
+    incidence with at least five in-plane points, where its brightest point (mean of
+    r, g, b) peaks between its neighbours (:attr:`Highlight.peak`) gives one
+    estimate, over the incidences of :func:`_peaks`; the result is their median.
+    On a 10-degree viewing grid the brightest point alone is up to 2.5 degrees
+    off the tilt; the peak between the neighbours was within 0.5 degrees for
+    most narrow lobes (benchmarks/RESULTS.md, "The search on random materials").
     A narrow highlight (``alpha_p`` of a few thousandths) is invisible to a
     random start: its basin is a fraction of a degree wide in ``theta_p``.
     """
-    tilts = [0.5 * (h.theta_o - h.theta_i) for h in _highlights(meas)]
+    tilts = [0.5 * (h.peak - h.theta_i) for h in _peaks(meas)]
     if not tilts:
         return None
     return float(np.clip(np.median(tilts), 0.0, 89.0))
@@ -756,13 +796,13 @@ def highlight_tilt(meas):
 def narrow_highlight(meas):
     """Whether the measured highlight is narrower than the angular sampling: near-mirror platelets.
 
-    True when, in the median over the incidences of :func:`highlight_tilt`,
+    True when, in the median over the incidences of :func:`_peaks`,
     the brightest point exceeds both its neighbours in ``theta_o`` by more
     than :data:`NARROW_RATIO`: a lobe that one viewing step resolves would
     fall off gradually. Such data get the estimator's MIS connection
     (:func:`make_problem`) and a near-mirror start (:func:`fit`).
     """
-    ratios = [h.ratio for h in _highlights(meas)]
+    ratios = [h.ratio for h in _peaks(meas)]
     return bool(ratios) and float(np.median(ratios)) > NARROW_RATIO
 
 
@@ -1198,15 +1238,7 @@ def check(problem, meas, x, *, key, walks, batches=CHECK_BATCHES):
 
 def _check(problem, meas, x, key, walks, batches=CHECK_BATCHES):
     """:func:`check`'s result and the pooled model ``(N, 3)`` (file's quantity) it comes from."""
-    if batches < 3 or walks % batches:
-        raise ValueError(f"check needs at least 3 batches that divide the walks; got {walks} walks, {batches} batches.")
-    sub = dataclasses.replace(problem, walks=walks // batches)
-    model = np.stack([problem.scale * np.asarray(dataclasses.replace(sub, key=k).estimate(x).f, float)
-                      for k in _batch_keys(key, batches)])
-    sigma = np.ones_like(model[0]) if meas.std is None else np.asarray(meas.std, float)
-    real = np.all(np.isfinite(sigma), axis=1)  # padded dummy points (jaxcos.ablate) have an infinite std
-    r = (model - meas.values)[:, real] / sigma[real]  # (batches, points, 3)
-
+    r, model, real, sigma = batch_residuals(problem, meas, x, key, walks, batches)
     material, se = _pair_chi2(r)
     resid = (model.mean(axis=0) - meas.values)[real]
     chi2 = float(np.sum((resid / sigma[real]) ** 2))
@@ -1218,6 +1250,42 @@ def _check(problem, meas, x, key, walks, batches=CHECK_BATCHES):
                       chi2_mc=chi2 - material, material_chi2=material, material_chi2_se=se, **_l2_rmse(resid),
                       **reduced)
     return out, model.mean(axis=0)
+
+
+def batch_residuals(problem, meas, x, key, walks, batches=CHECK_BATCHES):
+    """The weighted residuals ``(batches, N', 3)`` of ``batches`` independent batches of :func:`check`.
+
+    Batch ``b`` runs ``walks / batches`` walks under ``fold_in(key, b)``;
+    ``N'`` counts the measured points (padded ones, of infinite std, left
+    out; unit weights without std). Returns ``(r, model, real, sigma)``:
+    also each batch's model ``(batches, N, 3)`` in the file's quantity, the
+    mask of measured points and the weights' std.
+    """
+    if batches < 3 or walks % batches:
+        raise ValueError(f"check needs at least 3 batches that divide the walks; got {walks} walks, {batches} batches.")
+    sub = dataclasses.replace(problem, walks=walks // batches)
+    model = np.stack([problem.scale * np.asarray(dataclasses.replace(sub, key=k).estimate(x).f, float)
+                      for k in _batch_keys(key, batches)])
+    sigma = np.ones_like(model[0]) if meas.std is None else np.asarray(meas.std, float)
+    real = np.all(np.isfinite(sigma), axis=1)  # padded dummy points (jaxcos.ablate) have an infinite std
+    return (model - meas.values)[:, real] / sigma[real], model, real, sigma
+
+
+def pair_terms(r):
+    """The pair estimate of :func:`_pair_chi2` and its ``K`` delete-one-batch values, from batch residuals ``r``."""
+    k = r.shape[0]
+    r = r.reshape(k, -1)
+    gram = r @ r.T
+    total = gram.sum() - np.trace(gram)
+    # leaving out batch b removes its row and column of the off-diagonal sum
+    leave_one_out = (total - 2 * (gram.sum(axis=1) - np.diag(gram))) / ((k - 1) * (k - 2))
+    return float(total) / (k * (k - 1)), leave_one_out
+
+
+def jackknife_se(leave_one_out):
+    """The delete-one jackknife's standard error from the ``K`` delete-one values of an estimate."""
+    k = len(leave_one_out)
+    return float(np.sqrt((k - 1) / k * np.sum((leave_one_out - np.mean(leave_one_out)) ** 2)))
 
 
 def _pair_chi2(r):
@@ -1233,15 +1301,8 @@ def _pair_chi2(r):
     variance exists but can go negative under heavy-tailed errors (a
     near-mirror lobe).
     """
-    k = r.shape[0]
-    r = r.reshape(k, -1)
-    gram = r @ r.T
-    total = gram.sum() - np.trace(gram)
-    estimate = float(total) / (k * (k - 1))
-    # leaving out batch b removes its row and column of the off-diagonal sum
-    leave_one_out = (total - 2 * (gram.sum(axis=1) - np.diag(gram))) / ((k - 1) * (k - 2))
-    se = np.sqrt((k - 1) / k * np.sum((leave_one_out - leave_one_out.mean()) ** 2))
-    return estimate, float(se)
+    estimate, leave_one_out = pair_terms(r)
+    return estimate, jackknife_se(leave_one_out)
 
 
 def gauss_newton_step(problem, jac, pooled, x, *, damping=FINAL_DAMPING):
