@@ -263,7 +263,8 @@ def run_set(args, index):
         set=index, seed=args.seed, fit_seed=args.fit_seed, finer=not args.no_finer, variant=variant, product=product,
         n_points=int(meas.values.shape[0]), mc_noise_ratio=round(mc_ratio, 3),
         fit_chi2=fit_chi2, fit_chi2_se=fit_se, truth_chi2=truth_chi2, truth_chi2_se=truth_se,
-        ratio=ratio, ratio_se=ratio_se, passed=bool(ratio <= args.tolerance), scoring="common keys", eval_walks=eval_walks,
+        ratio=ratio, ratio_se=ratio_se, passed=bool(ratio <= args.tolerance), scoring="common keys",
+        eval_walks=eval_walks,
         fit_time_s=round(fit_time, 1), simulate_time_s=round(simulated, 1), stage_times_s=stages,
         fit_own_check=result.record.check.reduced_chi2, n_evaluations=result.record.n_evaluations,
         iterations=result.record.iterations, load_average=[round(v, 2) for v in os.getloadavg()],
@@ -341,7 +342,8 @@ def write_reports(args, records):
         worst = sorted([kv for kv in r["error"].items() if np.isfinite(kv[1])],
                        key=lambda kv: -abs(kv[1]) / _scale(kv[0]))[:3]
         lines.append(f"| {r['set']} | {r['variant']} | {r['product']} | {r['fit_chi2']:.2f} +- {r['fit_chi2_se']:.2f} "
-                     f"| {r['truth_chi2']:.2f} +- {r['truth_chi2_se']:.2f} | {r['ratio']:.2f}{_se(r)} | {r['fit_time_s']} | "
+                     f"| {r['truth_chi2']:.2f} +- {r['truth_chi2_se']:.2f} | {r['ratio']:.2f}{_se(r)} | "
+                     f"{r['fit_time_s']} | "
                      f"{'yes' if r['passed'] else '**no**'} | "
                      + ", ".join(f"{k} {v:+.2f}" for k, v in worst) + " |")
     (out / "summary.md").write_text("\n".join(lines) + "\n")
