@@ -181,25 +181,30 @@ def _interface(material):
     return {n: float(getattr(material.interface, n)) for n in ("eta", "alpha_s")}
 
 
-def score(meas, fitted, truth, key, walks, batches=CHECK_BATCHES):
+def _batches(meas, material, key, walks, batches, first):
+    """Batches ``first, ..., batches - 1`` of ``material``'s check (``batch_residuals``) and its dof."""
+    # the fit's parameterization: its dof and its map
+    param = parameterization("two_lobe", interface=material.interface is not None, template=material)
+    problem = make_problem(meas, param, key=key, walks=walks // batches, reference=material)
+    r = batch_residuals(problem, meas, param.from_material(material), key, walks, batches, first=first)[0]
+    return r, max(r[0].size - param.size, 1)
+
+
+def score(fitted, truth):
     """The fit's and the truth's reduced chi-square under the same independent keys, with their ratio.
 
-    Each is :func:`~jaxcos.inference._fit.check`'s pair estimate over
-    ``batches`` batches of ``walks / batches`` walks, batch ``b`` under
-    ``fold_in(key, b)`` for both materials (common random numbers: what
-    Monte Carlo error the two share cancels in the ratio; narrow lobes share
-    little, a material a little off the truth's lobe meeting it on other
-    walks). Returns ``(fit, fit_se, truth, truth_se, ratio, ratio_se)``, the
-    SEs the delete-one-batch jackknife's, the ratio's taken jointly.
+    ``fitted``, ``truth``: each material's batch residuals ``(K, N', 3)`` and
+    its dof (:func:`_batches`), batch ``b`` under ``fold_in(key, b)`` for
+    both (common random numbers: what Monte Carlo error the two share
+    cancels in the ratio; narrow lobes share little, a material a little off
+    the truth's lobe meeting it on other walks). Each is
+    :func:`~jaxcos.inference._fit.check`'s pair estimate. Returns ``(fit,
+    fit_se, truth, truth_se, ratio, ratio_se)``, the SEs the delete-one-batch
+    jackknife's, the ratio's taken jointly.
     """
     terms = []
-    for material in (fitted, truth):
-        # the fit's parameterization: its dof and its map
-        param = parameterization("two_lobe", interface=material.interface is not None, template=material)
-        problem = make_problem(meas, param, key=key, walks=walks // batches, reference=material)
-        r = batch_residuals(problem, meas, param.from_material(material), key, walks, batches)[0]
+    for r, dof in (fitted, truth):
         estimate, leave_one_out = pair_terms(r)
-        dof = max(r[0].size - param.size, 1)
         terms.append((estimate / dof, leave_one_out / dof))
     (f, f_loo), (t, t_loo) = terms
     return f, jackknife_se(f_loo), t, jackknife_se(t_loo), f / t, jackknife_se(f_loo / t_loo)
@@ -211,12 +216,16 @@ def settled_score(meas, fitted, truth, key, walks, target, most):
     At most ``most`` walks. A narrow lobe's pair estimate is heavy-tailed: at
     16384 walks its SE can exceed the 20% that tells a pass from a fail. Each
     score has four times the batches of the one before, of as many walks each,
-    its first batches that score's, so it refines it. Returns :func:`score`'s
-    six numbers and the walks they came from.
+    its first batches that score's (taken once), so it refines it. Returns
+    :func:`score`'s six numbers and the walks they came from.
     """
-    batches = CHECK_BATCHES
+    batches, taken = CHECK_BATCHES, [None, None]
     while True:
-        out = score(meas, fitted, truth, key, walks, batches)
+        for i, material in enumerate((fitted, truth)):
+            done = 0 if taken[i] is None else len(taken[i][0])
+            new, dof = _batches(meas, material, key, walks, batches, done)
+            taken[i] = (new if taken[i] is None else np.concatenate([taken[i][0], new]), dof)
+        out = score(*taken)
         if out[-1] <= target or 4 * walks > most:
             return out + (walks,)
         walks, batches = 4 * walks, 4 * batches

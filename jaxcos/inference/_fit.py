@@ -1252,20 +1252,22 @@ def _check(problem, meas, x, key, walks, batches=CHECK_BATCHES):
     return out, model.mean(axis=0)
 
 
-def batch_residuals(problem, meas, x, key, walks, batches=CHECK_BATCHES):
-    """The weighted residuals ``(batches, N', 3)`` of ``batches`` independent batches of :func:`check`.
+def batch_residuals(problem, meas, x, key, walks, batches=CHECK_BATCHES, first=0):
+    """The weighted residuals ``(batches - first, N', 3)`` of batches ``first, ..., batches - 1`` of :func:`check`.
 
-    Batch ``b`` runs ``walks / batches`` walks under ``fold_in(key, b)``;
-    ``N'`` counts the measured points (padded ones, of infinite std, left
-    out; unit weights without std). Returns ``(r, model, real, sigma)``:
-    also each batch's model ``(batches, N, 3)`` in the file's quantity, the
-    mask of measured points and the weights' std.
+    Batch ``b`` runs ``walks / batches`` walks under ``fold_in(key, b)``, so
+    a batch does not depend on how many others there are: ``first`` extends
+    residuals already taken. ``N'`` counts the measured points (padded ones,
+    of infinite std, left out; unit weights without std). Returns ``(r,
+    model, real, sigma)``: also each batch's model ``(batches - first, N,
+    3)`` in the file's quantity, the mask of measured points and the
+    weights' std.
     """
     if batches < 3 or walks % batches:
         raise ValueError(f"check needs at least 3 batches that divide the walks; got {walks} walks, {batches} batches.")
     sub = dataclasses.replace(problem, walks=walks // batches)
     model = np.stack([problem.scale * np.asarray(dataclasses.replace(sub, key=k).estimate(x).f, float)
-                      for k in _batch_keys(key, batches)])
+                      for k in _batch_keys(key, batches)[first:]])
     sigma = np.ones_like(model[0]) if meas.std is None else np.asarray(meas.std, float)
     real = np.all(np.isfinite(sigma), axis=1)  # padded dummy points (jaxcos.ablate) have an infinite std
     return (model - meas.values)[:, real] / sigma[real], model, real, sigma
