@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 import jaxcos
-from jaxcos.inference._fit import PHASE_GRID, fit, parameterization, phase_moves
+from jaxcos.inference._fit import PHASE_GRID, PHASE_STEPS, fit, parameterization, phase_moves
 from jaxcos.io._measurements import Measurements
 
 WALKS, BOUNCES, SEED = 128, 48, 0
@@ -80,7 +80,8 @@ def test_search_recovers_a_random_material(seed, variant, product):
 
 
 def test_phase_moves_change_the_phase_function_only():
-    """The refine stage's moves: first ``g1 = g2`` at the lobes' mean cosine, then the grid; the rest kept."""
+    """The refine stage's moves: first ``g1 = g2`` at the lobes' mean cosine, then the grid, then one phase
+    parameter moved at a time; the rest kept."""
     param = parameterization("two_lobe")
     material = jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=0.7, albedo_d=(0.9, 0.8, 0.7), g1=0.21, g2=-0.21,
                                                     w_g=0.61, albedo_p=0.8, alpha_p=0.08, theta_p=6.3),))
@@ -94,8 +95,11 @@ def test_phase_moves_change_the_phase_function_only():
     assert names[0] == "one lobe" and set(names[1:]) == {"other lobes"}
     np.testing.assert_allclose(after[0, [g1, g2, w]], [mean, mean, before[w]], atol=1e-5)
     grid = {(a, b, c) for a in PHASE_GRID["g1"] for b in PHASE_GRID["g2"] for c in PHASE_GRID["w_g"]}
-    assert len(names) == 1 + len(grid)
-    assert {tuple(round(float(v), 4) for v in row[[g1, g2, w]]) for row in after[1:]} == grid
+    own = before[[g1, g2, w]]
+    steps = {tuple(np.round(own + d * np.eye(3)[k], 4)) for k, name in enumerate(("g1", "g2", "w_g"))
+             for d in PHASE_STEPS[name]}
+    assert len(names) == 1 + len(grid) + sum(len(v) for v in PHASE_STEPS.values())
+    assert {tuple(round(float(v), 4) for v in row[[g1, g2, w]]) for row in after[1:]} == grid | steps
     rest = [i for i in range(len(labels)) if i not in (g1, g2, w)]
     np.testing.assert_allclose(after[:, rest], np.broadcast_to(before[rest], after[:, rest].shape), rtol=1e-5)
     assert phase_moves(parameterization("single_lobe"), parameterization("single_lobe").from_material(material)) is None

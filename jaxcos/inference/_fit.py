@@ -279,6 +279,11 @@ class Parameterization(eqx.Module):
             seeds.append(seed)
         return np.array(seeds), np.array(column), np.array(channel)
 
+    def difference_steps(self):
+        """``(size,)``: the central-difference step of each entry of ``x`` in the fit's Jacobian, 0 where it is
+        taken in forward mode (:data:`DIFFERENCED`)."""
+        return np.concatenate([np.full(RANGES[n].size, DIFFERENCED.get(n, 0.0)) for n in self.names])
+
     def bounds(self):
         """``(low, high)``: the fit's bounds of each :meth:`labels` entry (``jaxcos.model.RANGES``), the support of
         a uniform prior."""
@@ -349,6 +354,19 @@ class WeightedLeastSquares(eqx.Module):
         r = self.residuals(x)
         return jnp.sum(r * r)
 
+    def levelled_loss(self, x):
+        """The loss at ``x`` after the best level per colour channel: ``min_a sum ((a_c m - y) / sigma)^2``.
+
+        ``a_c = sum(m y / sigma^2) / sum(m^2 / sigma^2)`` over the points of
+        channel ``c``. A move of the phase function changes the whole
+        reflectance's level, which the diffusers' albedo restores in one
+        step; this loss compares moves by the shape they leave.
+        """
+        m = self.model(x)
+        w = 1.0 / self.sigma ** 2
+        a = jnp.sum(w * m * self.measured, axis=0) / jnp.maximum(jnp.sum(w * m * m, axis=0), 1e-30)
+        return jnp.sum(w * (a * m - self.measured) ** 2)
+
 
 class Problem(WeightedLeastSquares):
     """Everything the residuals need: the data, the query, the budget, the key.
@@ -398,6 +416,15 @@ def _residuals(problem, x):
     return WeightedLeastSquares.residuals(problem, x)
 
 
+DIFFERENCED = dict(g1=0.05, g2=0.05, alpha_p=0.02, theta_p=0.02)
+"""The parameters whose columns of the fit's Jacobian are central differences under the problem's key, with
+their steps in the fit's coordinates ``x``. Each moves a sampled direction (a diffuser lobe's, a platelet's
+normal), and its forward-mode derivative carries the derivative of the lobes evaluated at that direction, which
+under a narrow platelet lobe is heavy-tailed: on dewy1's fit at 128 walks the forward-mode column of ``g1`` was
+36 times as long as a 16384-walk difference and uncorrelated with it (cosine -0.02; differences at 128 walks:
+0.65-0.81), and ``alpha_p``'s cosine 0.53 (differences 0.99-1.00) (benchmarks/RESULTS.md, decision records)."""
+
+
 def _jacobian_walks(problem):
     """The walks the Jacobian of ``problem`` is taken from: ``jacobian_walks``, at most ``walks``."""
     return problem.walks if problem.jacobian_walks is None else min(problem.jacobian_walks, problem.walks)
@@ -412,15 +439,37 @@ def _jacobian(problem, x):
     (the walks' random numbers do not depend on their count, see
     ``_walk._uniforms``), and so are the residuals returned with it. The colour
     channels' columns share tangents (:meth:`Parameterization.colouring`). The
-    incidences are walked one after another (``incidence_batch=1``), which
-    was faster than vectorising them (benchmarks/RESULTS.md, decision records).
+    columns of :data:`DIFFERENCED` are central differences of those walks
+    under the same key instead. The incidences are walked one after another
+    (``incidence_batch=1``), which was faster than vectorising them
+    (benchmarks/RESULTS.md, decision records).
     """
     sub = dataclasses.replace(problem, walks=_jacobian_walks(problem), incidence_batch=1)
     fn = lambda v: _residuals.fun(sub, v)
     seeds, column, channel = problem.param.colouring()
-    y, packed = jax.vmap(lambda e: jax.jvp(fn, (x,), (e,)), out_axes=(None, -1))(jnp.asarray(seeds, x.dtype))
+    steps = problem.param.difference_steps()
+    tangents = sorted({int(c) for c, h in zip(column, steps) if h == 0})
+    if tangents:
+        y, packed = jax.vmap(lambda e: jax.jvp(fn, (x,), (e,)), out_axes=(None, -1))(
+            jnp.asarray(seeds[tangents], x.dtype))
+    else:
+        y, packed = fn(x), None
+    differenced = np.flatnonzero(steps)
+    if differenced.size:
+        moves = np.zeros((differenced.size, x.size))
+        moves[np.arange(differenced.size), differenced] = steps[differenced]
+        moves = jnp.asarray(moves, x.dtype)
+        ends = jax.vmap(fn)(jnp.concatenate([x + moves, x - moves]))
+        diffs = (ends[:differenced.size] - ends[differenced.size:]).T / jnp.asarray(2 * steps[differenced], x.dtype)
     row_channel = np.arange(y.shape[0]) % 3
-    return packed[:, column] * ((channel < 0) | (channel == row_channel[:, None])), y
+    cols = []
+    for j in range(x.size):
+        if steps[j]:
+            cols.append(diffs[:, int(np.searchsorted(differenced, j))])
+        else:
+            mask = (channel[j] < 0) | (channel[j] == row_channel)
+            cols.append(packed[:, tangents.index(int(column[j]))] * mask)
+    return jnp.stack(cols, axis=1), y
 
 
 @_residuals.defjvp
@@ -1489,19 +1538,27 @@ PHASE_GRID = dict(g1=(0.2, 0.4, 0.6, 0.8), g2=(-0.6, -0.3, 0.0), w_g=(0.6, 0.8, 
 """The two-lobe phase functions that :func:`phase_moves` puts in place of a refined start's own: from
 forward to nearly isotropic front lobes, from strong to no back lobes, over the priors' weights."""
 
+PHASE_STEPS = dict(g1=(-0.1, -0.05, -0.025, 0.025, 0.05, 0.1), g2=(-0.1, -0.05, -0.025, 0.025, 0.05, 0.1),
+                   w_g=(-0.1, -0.05, 0.05, 0.1))
+"""The moves of one phase parameter at a time that :func:`phase_moves` also tries: under a forward lobe
+(``g1`` 0.6-0.9) the reflectance changes fast with ``g1``, and a fit can stop 0.1 short of it."""
+
 
 def phase_moves(param, x):
     """``(labels, xs)``: ``x`` with its diffuser phase function replaced, ``xs`` of shape ``(C, P)``.
 
     First ``"one lobe"``: both lobes made one, ``g1 = g2`` at their mean cosine
     ``w_g g1 + (1 - w_g) g2`` with ``w_g`` kept; then ``"other lobes"``, each
-    ``(g1, g2, w_g)`` of :data:`PHASE_GRID`; every other parameter kept.
-    ``None`` where ``param`` does not fit both lobes and their weight. The
-    phase function's basins are separated by ridges that Levenberg-Marquardt
-    does not cross with the rest held near the optimum: a single-lobe material
-    (``w_g = 1``, the bound of ``w_g``'s map) fitted with two can end with two
-    opposed lobes (``g1 = -g2``) of about the right mean cosine, and a two-lobe
-    one with its lobes traded against the platelets' albedo (docs/method.md, "The search").
+    ``(g1, g2, w_g)`` of :data:`PHASE_GRID`, then ``x``'s own with one of them
+    moved by each of :data:`PHASE_STEPS` (kept within the fit's bounds); every
+    other parameter kept. ``None`` where ``param`` does not fit both lobes and
+    their weight. The phase function's basins are separated by ridges that
+    Levenberg-Marquardt does not cross with the rest held near the optimum: a
+    single-lobe material (``w_g = 1``, the bound of ``w_g``'s map) fitted with
+    two can end with two opposed lobes (``g1 = -g2``) of about the right mean
+    cosine, a two-lobe one with its lobes traded against the platelets'
+    albedo, and a strongly forward lobe short of its ``g1``, where the
+    Jacobian of the fit's few walks hardly sees it (docs/method.md, "The search").
     """
     if not {"g1", "g2", "w_g"} <= set(param.names):
         return None
@@ -1511,6 +1568,13 @@ def phase_moves(param, x):
     mean = v[iw] * v[i1] + (1.0 - v[iw]) * v[i2]
     phases = [(mean, mean, v[iw])] + [(g1, g2, w) for g1 in PHASE_GRID["g1"] for g2 in PHASE_GRID["g2"]
                                       for w in PHASE_GRID["w_g"]]
+    low, high = param.bounds()
+    margin = 1e-3 * (high - low)
+    for name, i in (("g1", i1), ("g2", i2), ("w_g", iw)):
+        for step in PHASE_STEPS[name]:
+            u = [v[i1], v[i2], v[iw]]
+            u[(i1, i2, iw).index(i)] = float(np.clip(v[i] + step, low[i] + margin[i], high[i] - margin[i]))
+            phases.append(tuple(u))
     vs = np.repeat(v[None], len(phases), axis=0)
     vs[:, [i1, i2, iw]] = phases
     xs = jnp.stack([param.from_material(param.physical_to_material(jnp.asarray(u, x.dtype))) for u in vs])
@@ -1518,8 +1582,8 @@ def phase_moves(param, x):
 
 
 @eqx.filter_jit
-def _losses(problem, xs):
-    return jax.vmap(problem.loss)(xs)
+def _levelled_losses(problem, xs):
+    return jax.vmap(problem.levelled_loss)(xs)
 
 
 def refine_phase(refined, refiner, say):
@@ -1527,8 +1591,9 @@ def refine_phase(refined, refiner, say):
 
     Each refined start is evaluated on its own objective at its
     :func:`phase_moves`. Of each kind of move (one lobe, other lobes), the one
-    that lowers a start's loss most, relative to its own, is refined from
-    there too (:data:`PASSES` passes) where it lowers it at all, and joins the
+    that lowers a start's loss after the best level per channel
+    (:meth:`~WeightedLeastSquares.levelled_loss`) most, relative to its own,
+    is refined from there too (:data:`PASSES` passes) where it lowers it at all, and joins the
     refined starts for :func:`select` to judge (a loss under another start's
     weights says little about the check). Returns the new
     :class:`RefinedStart` of each, one lobe first.
@@ -1539,9 +1604,9 @@ def refine_phase(refined, refiner, say):
         if moves is None:
             continue
         names, xs = moves
-        losses = np.asarray(_losses(r.problem, xs), float)
-        for name, loss, x in zip(names, losses, xs):
-            ratio = loss / r.loss
+        losses = np.asarray(_levelled_losses(r.problem, jnp.concatenate([r.x[None], xs])), float)
+        for name, loss, x in zip(names, losses[1:], xs):
+            ratio = loss / losses[0]
             if np.isfinite(ratio) and ratio < 1.0 and ratio < best.get(name, (np.inf,))[0]:
                 best[name] = (ratio, r, x)
     out = []
