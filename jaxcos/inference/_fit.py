@@ -1570,10 +1570,10 @@ def phase_moves(param, x):
                                       for w in PHASE_GRID["w_g"]]
     low, high = param.bounds()
     margin = 1e-3 * (high - low)
-    for name, i in (("g1", i1), ("g2", i2), ("w_g", iw)):
+    for k, (name, i) in enumerate((("g1", i1), ("g2", i2), ("w_g", iw))):
         for step in PHASE_STEPS[name]:
             u = [v[i1], v[i2], v[iw]]
-            u[(i1, i2, iw).index(i)] = float(np.clip(v[i] + step, low[i] + margin[i], high[i] - margin[i]))
+            u[k] = float(np.clip(v[i] + step, low[i] + margin[i], high[i] - margin[i]))
             phases.append(tuple(u))
     vs = np.repeat(v[None], len(phases), axis=0)
     vs[:, [i1, i2, iw]] = phases
