@@ -414,6 +414,43 @@ def test_narrow_highlight_of_the_bundled_sets(name, narrow):
     assert narrow_highlight(meas) == narrow
 
 
+def _inplane(material, walks=256):
+    """``material``'s reflectance factor on an instrument-like grid: theta_i 20-70, theta_o -40..80 every 2 degrees."""
+    ti, to = np.meshgrid(np.arange(20.0, 71.0, 10.0), np.arange(-40.0, 81.0, 2.0), indexing="ij")
+    ti, to = ti.ravel(), to.ravel()
+    f = jaxcos.simulate(material, jaxcos.make_query(ti, to), jax.random.key(5), walks=walks, bounces=64).f
+    return Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros_like(ti), values=np.pi * np.asarray(f, float),
+                        std=None, quantity="reflectance_factor", metadata={}, path="grid.csv")
+
+
+@pytest.mark.slow
+def test_gloss_growth_tells_a_surface_from_a_medium():
+    """A gloss made by a top surface grows with incidence like ``1 / (mu_i mu_o)``; one made in a bright medium,
+    like ``1 / (mu_i + mu_o)``. The bundled sets (no interface) are media; the hint names the interface only
+    for a material without one."""
+    from jaxcos.inference import gloss_growth
+    from jaxcos.report import gloss_hint
+
+    body = jaxcos.Layer(t=16.0, c_d=0.9, albedo_d=(0.95, 0.85, 0.75), g1=0.1, g2=0.1, w_g=1.0, albedo_p=0.9,
+                        alpha_p=0.2, theta_p=0.0)
+    glossy = jaxcos.Material(layers=(body,), variant="single_lobe", interface=jaxcos.Interface(eta=1.5, alpha_s=0.1))
+    surface = _inplane(glossy)
+    growth = gloss_growth(surface)
+    assert growth.theta_i == (20.0, 70.0) and growth.surface_like
+    # the peaks' cosines: a surface grows 9-10-fold over these incidences, diffusers 3-fold
+    assert 8.0 < growth.surface < 12.0 and 2.5 < growth.volume < 3.5
+    assert "Fit with --interface" in gloss_hint(surface, jaxcos.Material(layers=(body,), variant="single_lobe"))
+    assert gloss_hint(surface, glossy) is None
+    medium = _inplane(jaxcos.published("dewy1"))
+    assert not gloss_growth(medium).surface_like
+    for name in ("dewy1", "dewy2", "matte1", "matte2"):
+        meas = jaxcos.load_measurements(os.path.join(os.path.dirname(__file__), "..", "measurements", f"{name}.csv"))
+        assert not gloss_growth(meas).surface_like, name
+    one = Measurements(theta_i=np.full(8, 30.0), theta_o=np.linspace(-40.0, 80.0, 8), phi_o=np.zeros(8),
+                       values=np.ones((8, 3)), std=None, quantity="reflectance_factor", metadata={}, path="one.csv")
+    assert gloss_growth(one) is None  # one incidence: nothing to compare
+
+
 def test_parameterization_round_trip():
     param = parameterization("two_lobe", fit_t=True, fit_phi=True)
     m = jaxcos.Material(layers=(jaxcos.Layer(t=3.0, c_d=0.4, albedo_d=(0.2, 0.5, 0.9), g1=0.7, g2=-0.4, w_g=0.3,

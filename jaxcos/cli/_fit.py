@@ -6,7 +6,7 @@ from .._errors import InputError, refuse_overwrite
 from ..inference import fit
 from ..io import load_measurements, load_params
 from ..model import FIT_BUDGET, FIT_JACOBIAN_WALKS, check_variant, resolve_budget
-from ..report import FIT_FILES, write_fit
+from ..report import FIT_FILES, gloss_hint, write_fit
 from ._catalogue import (Job, add_catalogue_options, check_catalogue_options, draw_curves, is_catalogue,
                          run_catalogue)
 from ._common import add_budget, progress
@@ -52,7 +52,7 @@ def fit_file(path, out, options, *, force=False, progress=None):
     """Fit the measurement file ``path`` with ``options`` (:func:`fit_options`) and write its result folder ``out``.
 
     What ``jaxcos fit FILE --out DIR`` runs, and what a catalogue runs for each of its files;
-    returns the :class:`~jaxcos.FitResult`.
+    returns the :class:`~jaxcos.FitResult` and the measurements it was fitted to.
     """
     meas = load_measurements(path)
     if options["noise"] is not None:
@@ -63,7 +63,7 @@ def fit_file(path, out, options, *, force=False, progress=None):
                  starts=options["starts"], fit_t=options["fit_t"], fit_phi=options["fit_phi"], start=start,
                  t=options["t"], interface=options["interface"] or None, finer=options["finer"], progress=progress)
     write_fit(result, meas, out, force=force)
-    return result
+    return result, meas
 
 
 def fit_into(path, folder, options):
@@ -142,8 +142,11 @@ def _cmd(args):
         return run_catalogue(FIT_JOB, args.measurements, args.out, options, force=args.force,
                              scheduler=args.scheduler, workers=args.workers, tries=args.tries, say=progress("fit"))
     refuse_overwrite([os.path.join(args.out, name) for name in FIT_FILES], args.force)
-    result = fit_file(args.measurements[0], args.out, options, force=args.force, progress=progress("fit"))
+    result, meas = fit_file(args.measurements[0], args.out, options, force=args.force, progress=progress("fit"))
     print(_summary(result.record, args.out))
+    hint = gloss_hint(meas, result.material)
+    if hint is not None:
+        print(hint)
 
 
 def add_command(sub):

@@ -12,8 +12,10 @@ from ._fit import (
     FitRecord,
     FitResult,
     FitSummary,
+    GlossGrowth,
     WeightedLeastSquares,
     fit,
+    gloss_growth,
     make_problem,
     parameterization,
 )

@@ -14,6 +14,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from .._errors import staged_outputs
+from ..inference import gloss_growth
 from ..io import material_to_dict, save_params
 from ..io import default_exposure, draw_reflectance
 
@@ -188,6 +189,33 @@ def _unweighted_lines(meas, model):
     return ["", "## Where the loss comes from", "", text]
 
 
+def gloss_hint(meas, material):
+    """One sentence for a fit without a top interface whose data's gloss grows like a surface's, else ``None``.
+
+    :func:`~jaxcos.inference.gloss_growth`: such a gloss needs a top interface
+    (``--interface``), or the fit makes the medium a mirror.
+    """
+    gloss = gloss_growth(meas)
+    if material.interface is not None or gloss is None or not gloss.surface_like:
+        return None
+    lo, hi = gloss.theta_i
+    return (f"The measured gloss grows {gloss.growth:.1f}-fold from theta_i {lo:g} to {hi:g} degrees, like a "
+            f"reflection at the surface ({gloss.surface:.1f}-fold before Fresnel), not like light scattered in "
+            f"the layer ({gloss.volume:.1f}-fold): without a top interface only a mirror-like medium of "
+            "platelets makes it. Fit with --interface.")
+
+
+def _gloss_lines(meas, material):
+    """The report's section on a gloss that needs a top interface (:func:`gloss_hint`), or nothing."""
+    hint = gloss_hint(meas, material)
+    if hint is None:
+        return []
+    return ["", "## The gloss", "", f"**{hint}**", "",
+            "`jaxcos fit FILE --interface` gives the material a rough dielectric top surface (docs/model.md "
+            "section 3a) whose reflection grows that way; `jaxcos ablate FILE --interface` compares the two "
+            "models by AIC and BIC."]
+
+
 def _weighting(meas):
     """One sentence: how the points were weighed (std columns, a ``--noise`` model, or none: plain L2)."""
     if meas.std is None:
@@ -248,6 +276,7 @@ def fit_report(result, meas):
     else:
         lines += [f"| `interface.eta` (top interface, docs/model.md section 3a) | {_fmt(float(top.eta))} |",
                   f"| `interface.alpha_s` | {_fmt(float(top.alpha_s))} |"]
+    lines += _gloss_lines(meas, result.material)
     lines += [
         "",
         "## Starts",
