@@ -1,6 +1,7 @@
 """The ablation: variant structure, padding, statistics, the BIC verdict on synthetic data, the command."""
 
 import csv
+import dataclasses
 import json
 import os
 
@@ -27,7 +28,7 @@ from jaxcos.cli import main
 from jaxcos.inference._fit import make_problem, parameterization
 from jaxcos.inference._kubelka_munk import make_km_problem
 from jaxcos.io._measurements import Measurements
-from jaxcos.report._ablate import ABLATION_FILES
+from jaxcos.report._ablate import ABLATION_FILES, ablation_report
 
 # --- structure ---------------------------------------------------------------------------
 
@@ -283,6 +284,12 @@ def test_interface_data_prefer_the_interface(interface_ablation, tmp_path):
     assert tuple(rows[0]) == CSV_COLUMNS and [r["variant"] for r in rows] == list(result.variants)
     report = (out / "report.md").read_text()
     assert "## With and without the interface" in report and "`diffusers_only+interface`" in report
+    assert "like a reflection at the surface" not in report
+    # without the interface, the report says that this file's gloss is a surface's
+    plain_only = dataclasses.replace(result, variants=result.variants[:1], rows=[plain],
+                                     fits={(0, "diffusers_only"): result.fits[(0, "diffusers_only")]})
+    assert "like a reflection at the surface" in ablation_report(plain_only)
+    assert "again with `--interface`" in ablation_report(plain_only)
     fits = json.loads((out / "fits.json").read_text())["glossy.csv"]
     assert "interface" in fits["diffusers_only+interface"] and "interface" not in fits["diffusers_only"]
 

@@ -74,7 +74,7 @@ import optimistix as optx
 
 from .._errors import InputError
 from ._fit import fit, make_problem
-from ..model import POSTERIOR_BUDGET, THIN_AFTER, lobe_probabilities, simulate
+from ..model import POSTERIOR_BUDGET, lobe_probabilities, simulate
 
 WALKERS = 32
 """Ensemble size: more than twice the twelve parameters of the two-lobe model (:func:`uncertainty` takes
@@ -101,6 +101,11 @@ SLOPE_NOISE = 0.25
 SPREAD_FRACTION = 8
 """The Monte Carlo spread's replicas use this fraction of the linearisation's walks, and at least 128
 (:func:`monte_carlo_spread`)."""
+
+POSTERIOR_THIN_AFTER = 32
+"""The linearisations' estimator makes every walk make the first 32 steps (``simulate(thin_after=...)``):
+the coverage of random truths (docs/method.md, "Posteriors") was measured so; ``simulate``'s default
+thins from step 16."""
 
 
 # --- a sampler for any batched log-density ---------------------------------------------
@@ -947,7 +952,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
     anchor_key, _, check_key, pilot_key = jax.random.split(jax.random.key(seed), 4)
     problem = dataclasses.replace(
         make_problem(meas, param, key=anchor_key, walks=hi_walks, bounces=bounces, lobe_probs=probs),
-        thin_after=THIN_AFTER)
+        thin_after=POSTERIOR_THIN_AFTER)
     if estimated:
         say("estimating the noise (std = relative * |value| + absolute) by maximum likelihood at the fit")
         noise = estimate_noise(fit_result.model - meas.values, meas.values, fit_result.model_std,

@@ -46,7 +46,7 @@ count, base) is static, so a variant's program contains only its own lobes.
 With ``simulate(connection="mis")`` every step also makes one backward
 connection per walk (:func:`_backward_connection`), about half as costly as
 the rest of the step. The later steps are made by fewer walks, which stand
-for the others (:func:`stages`): about half the steps at 128 bounces.
+for the others (:func:`stages`): under a third of the steps at 128 bounces.
 """
 
 import math
@@ -284,9 +284,12 @@ def _uniforms(seed, step, walks, n, dtype, first=0):
 
 # --- fewer walks for the later steps ----------------------------------------------------
 
-THIN_AFTER = 32
+THIN_AFTER = 16
 """Steps that every walk makes; after them the walk count halves, and halves again each time
-the step count doubles (:func:`stages`)."""
+the step count doubles (:func:`stages`). From step 16 rather than 32, the default 128 x 512
+evaluation of the standard grid was 1.2-1.7 times as efficient (dewy1 1.24, dewy2 1.38, matte2
+1.56, the renderer's slab 1.71; benchmarks/RESULTS.md, "Estimator efficiency"); from step 8
+the dewy sets' error grew faster than the time fell."""
 THIN_HALVINGS = 4
 """At most this many halvings: the later steps are made by at least a sixteenth of the walks."""
 THIN_CHUNK = 8
@@ -306,8 +309,9 @@ def stages(walks, bounces, thin_after=THIN_AFTER):
     after 64), so those steps are cheap to estimate from fewer walks. The count
     halves after ``thin_after`` steps and each time the step count doubles,
     at most :data:`THIN_HALVINGS` times, while it halves evenly and stays at
-    least :data:`THIN_CHUNK`: at 1024 x 128 walks 1024, 512, 256 from steps 0,
-    32, 64 (64 steps a walk instead of 128; at 128 x 512, 96 instead of 512).
+    least :data:`THIN_CHUNK`: at 1024 x 128 walks 1024, 512, 256, 128 from
+    steps 0, 16, 32, 64 (40 steps a walk instead of 128; at 128 x 512, 64
+    instead of 512).
     ``thin_after=None``: every walk makes every step.
     """
     if thin_after is None:

@@ -27,6 +27,7 @@ from .._errors import staged_outputs
 from ..inference import CSV_COLUMNS
 from ..inference._ablate import INTERFACE_SUFFIX
 from ..io import default_exposure, draw_reflectance, material_to_dict
+from ._fit import surface_gloss
 from ..model import Material
 
 ABLATION_FILES = ("ablation.csv", "report.md", "ablation.png", "fits.json")
@@ -87,7 +88,7 @@ def ablation_report(result):
             "",
         ]
     best_rows = []
-    for name in result.names:
+    for name, meas in zip(result.names, result.measurements):
         rows = [r for r in result.rows if r["file"] == name]
         best = min(rows, key=lambda r: r["bic"])
         best_rows.append((name, best))
@@ -105,6 +106,10 @@ def ablation_report(result):
                       "the ranking says which misfit is least bad, not which model is right. A narrow highlight "
                       "that no start of the multi-start reached is the usual cause; compare the panels of "
                       "`ablation.png`."]
+        gloss = None if interface else surface_gloss(meas)
+        if gloss is not None:
+            lines += ["", f"**{gloss}** Run the ablation again with `--interface` to fit each variant under a top "
+                      "interface too."]
         lines.append("")
     lines += ["## Preferred by BIC", "", "| file | variant | next best (ΔBIC) |", "|---|---|---|"]
     for name, best in best_rows:

@@ -189,20 +189,25 @@ def _unweighted_lines(meas, model):
     return ["", "## Where the loss comes from", "", text]
 
 
-def gloss_hint(meas, material):
-    """One sentence for a fit without a top interface whose data's gloss grows like a surface's, else ``None``.
-
-    :func:`~jaxcos.inference.gloss_growth`: such a gloss needs a top interface
-    (``--interface``), or the fit makes the medium a mirror.
-    """
+def surface_gloss(meas):
+    """What makes the gloss of ``meas``, where it grows like a surface's (:func:`~jaxcos.inference.gloss_growth`):
+    one sentence, else ``None``."""
     gloss = gloss_growth(meas)
-    if material.interface is not None or gloss is None or not gloss.surface_like:
+    if gloss is None or not gloss.surface_like:
         return None
     lo, hi = gloss.theta_i
     return (f"The measured gloss grows {gloss.growth:.1f}-fold from theta_i {lo:g} to {hi:g} degrees, like a "
             f"reflection at the surface ({gloss.surface:.1f}-fold before Fresnel), not like light scattered in "
             f"the layer ({gloss.volume:.1f}-fold): without a top interface only a mirror-like medium of "
-            "platelets makes it. Fit with --interface.")
+            "platelets makes it.")
+
+
+def gloss_hint(meas, material):
+    """For a fit without a top interface to data whose gloss grows like a surface's (:func:`surface_gloss`), what
+    to do instead: one sentence naming ``--interface``; else ``None``. Such a gloss needs a top interface, or the
+    fit makes the medium a mirror."""
+    text = None if material.interface is not None else surface_gloss(meas)
+    return None if text is None else f"{text} Fit with --interface."
 
 
 def _gloss_lines(meas, material):
