@@ -26,7 +26,8 @@ A set:
    generator, plus the bundled sets' noise (``scripts/make_measurements.py``):
    ``s = sqrt((0.02 v)^2 + 0.002^2)``, ``value = v + N(0, s^2)``, ``std = s``.
 4. **Fit**: ``jaxcos.fit(meas, seed=fit_seed)``, every other argument its default
-   (with ``--no-finer``, ``finer=False``: the selected start not refined again at four times the walks).
+   (with ``--no-finer``, ``finer=False``: the selected start not refined again at four times the walks;
+   with ``--thin-after N`` or ``none``, the fit's ``thin_after``).
 5. **Score**: the fit's material and the truth, each checked as
    ``jaxcos.inference._fit.check`` does (pairs of independent batches: the
    material's own chi-square, free of Monte Carlo variance) at ``--eval-walks``
@@ -251,6 +252,11 @@ def errors(fitted, truth, variant):
     return out
 
 
+def _thin_after(text):
+    """``--thin-after``: a step count, or ``None`` for ``"none"`` (every walk making every step)."""
+    return None if text == "none" else int(text)
+
+
 def run_set(args, index):
     started = time.perf_counter()
     meas, truth, variant, product, rng, mc_ratio = make_set(args.seed, index, args.sim_walks, args.sim_bounces,
@@ -261,15 +267,17 @@ def run_set(args, index):
     simulated = time.perf_counter() - started
     stages = []
     t0 = time.perf_counter()
+    options = {} if args.thin_after == "default" else dict(thin_after=_thin_after(args.thin_after))
     result = jaxcos.fit(meas, seed=args.fit_seed, interface=args.interface or None, finer=not args.no_finer,
-                        progress=lambda m: stages.append(round(time.perf_counter() - t0, 1)))
+                        progress=lambda m: stages.append(round(time.perf_counter() - t0, 1)), **options)
     fit_time = time.perf_counter() - t0
     eval_key = jax.random.key(int(rng.integers(2 ** 31)))
     fit_chi2, fit_se, truth_chi2, truth_se, ratio, ratio_se, eval_walks = settled_score(
         meas, result.material, truth, eval_key, args.eval_walks, args.ratio_se, args.max_eval_walks)
     fitted, true = physical(result.material), physical(truth)
     record = dict(
-        set=index, seed=args.seed, fit_seed=args.fit_seed, finer=not args.no_finer, variant=variant, product=product,
+        set=index, seed=args.seed, fit_seed=args.fit_seed, finer=not args.no_finer, thin_after=args.thin_after,
+        variant=variant, product=product,
         n_points=int(meas.values.shape[0]), mc_noise_ratio=round(mc_ratio, 3),
         fit_chi2=fit_chi2, fit_chi2_se=fit_se, truth_chi2=truth_chi2, truth_chi2_se=truth_se,
         ratio=ratio, ratio_se=ratio_se, passed=bool(ratio <= args.tolerance), scoring="common keys",
@@ -399,6 +407,8 @@ def main():
                         help="truths under a top interface (draw_interface), fitted with --interface")
     parser.add_argument("--no-finer", action="store_true",
                         help="fit with finer=False (the selected start not refined again at 4x the walks)")
+    parser.add_argument("--thin-after", default="default",
+                        help="the fit's thin_after (jaxcos.fit), a step count or 'none' (default: the fit's own)")
     parser.add_argument("--report-only", action="store_true", help="rewrite sets.csv and summary.md from sets.jsonl")
     args = parser.parse_args()
     if args.quick:

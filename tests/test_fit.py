@@ -728,7 +728,7 @@ def test_finer_refinement_joins_the_starts_and_wins_only_on_its_check():
     import jaxcos.inference._fit as fitting
 
     result = fit(_synthetic(TRUTH, START), variant="single_lobe", walks=16, bounces=16, jacobian_walks=8, starts=2,
-                 final_step=False)
+                 final_step=False, thin_after=16)  # (16 bounces: no step is thinned, the numbers are the default's)
     last = result.starts[-1]
     assert last.label.endswith(f"{fitting.FINE_FACTOR}x walks")
     assert result.record.starts_refined == len(result.starts)
@@ -738,19 +738,22 @@ def test_finer_refinement_joins_the_starts_and_wins_only_on_its_check():
     assert result.record.check.material_chi2 == result.starts[best].material_chi2
     assert result.problem.walks == (16 * fitting.FINE_FACTOR if best == len(result.starts) - 1 else 16)
     assert result.problem.connection == ("mis" if best == len(result.starts) - 1 else "nee")
+    assert result.problem.thin_after == (None if best == len(result.starts) - 1 else 16)
 
 
 @pytest.mark.parametrize("variant, interface, connection", [
     ("single_lobe", False, "mis"), ("diffusers_only", False, "nee"), ("single_lobe", True, "nee")])
 def test_finer_problem(variant, interface, connection):
-    """The finer objective: the same key, data and Jacobian walks, FINE_FACTOR times the walks, and the MIS
-    connection where there are platelets and no top interface (which MIS does not go through)."""
+    """The finer objective: the same key, data and Jacobian walks, FINE_FACTOR times the walks, every walk
+    making every step, and the MIS connection where there are platelets and no top interface (which MIS does
+    not go through)."""
     import jaxcos.inference._fit as fitting
 
     data = _synthetic(TRUTH, START)
     base = fitting.make_problem(data, fitting.parameterization(variant, interface=interface), key=jax.random.key(3),
-                                walks=16, jacobian_walks=8, connection="nee")
+                                walks=16, jacobian_walks=8, connection="nee", thin_after=16)
     finer = fitting.finer_problem(base)
+    assert base.thin_after == 16 and finer.thin_after is None
     assert (finer.walks, finer.jacobian_walks, finer.connection) == (16 * fitting.FINE_FACTOR, 8, connection)
     assert finer.key is base.key and finer.measured is base.measured and finer.param is base.param
 

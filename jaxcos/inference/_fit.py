@@ -382,9 +382,7 @@ class Problem(WeightedLeastSquares):
     BSDF, :attr:`jaxcos.io.Measurements.scale`). Their value uses ``walks`` walks; their
     Jacobian (forward mode, a ``custom_jvp``) the first ``jacobian_walks`` of them (all when
     ``None``). ``thin_after``: ``simulate``'s; ``None`` by default, every walk making every
-    step. Fits with the later steps made by fewer walks (``simulate``'s default, 32) were
-    faster but recovered fewer random materials under a fixed key (1 of 8 against 3 of 8
-    on the same data; benchmarks/RESULTS.md, decision records).
+    step.
     """
 
     param: Parameterization
@@ -489,8 +487,11 @@ def _residuals_jvp(primals, tangents):
 
 
 def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe_probs=None, reference=None,
-                 jacobian_walks=None, connection=None):
+                 jacobian_walks=None, connection=None, thin_after=None):
     """The least-squares :class:`Problem` of fitting ``param`` to measurements ``meas``.
+
+    ``thin_after``: the steps every walk makes (:func:`~jaxcos.simulate`); ``None``
+    (the default): every walk makes every step.
 
     ``lobe_probs`` are held fixed during the fit (common random numbers); by
     default they are those of ``reference`` (a material) or of the default start.
@@ -540,6 +541,7 @@ def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe
         jacobian_walks=jacobian_walks,
         connection=connection,
         boundary_prob=boundary_prob,
+        thin_after=thin_after,
     )
 
 
@@ -1685,7 +1687,7 @@ def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, sa
     last.
     """
     screen_problem = dataclasses.replace(problem, walks=budget.screen_walks, bounces=budget.screen_bounces,
-                                         jacobian_walks=None)
+                                         jacobian_walks=None, thin_after=None)
     say(f"refining the {' and '.join(plan.unscreened)} start{'s' * (len(plan.unscreened) > 1)} unscreened "
         f"({method}, {PASSES} passes) while screening {plan.pool.shape[0]} starts with a short "
         f"Levenberg-Marquardt at {screen_problem.walks} walks and {screen_problem.bounces} bounces")
@@ -1752,8 +1754,9 @@ def finer_problem(problem):
     """The objective of the finer refinement: ``problem`` at :data:`FINE_FACTOR` times the walks, connected by MIS.
 
     The same key (the first of the walks are ``problem``'s) and the same
-    Jacobian walks. Where the material has platelets and no top interface the
-    connection becomes ``"mis"`` (:func:`~jaxcos.simulate`): the objectives
+    Jacobian walks; every walk makes every step (``thin_after=None``).
+    Where the material has platelets and no top interface the connection
+    becomes ``"mis"`` (:func:`~jaxcos.simulate`): the objectives
     that are mostly their own noise are those of narrow, tilted platelet
     lobes, whose variance sits in paths that meet the lobe more than once
     (benchmarks/RESULTS.md, "Where the fit's noise is worst"), which the
@@ -1761,7 +1764,7 @@ def finer_problem(problem):
     """
     mis = "alpha_p" in problem.param.names and not problem.param.interface
     return dataclasses.replace(problem, walks=FINE_FACTOR * problem.walks,
-                               connection="mis" if mis else problem.connection)
+                               connection="mis" if mis else problem.connection, thin_after=None)
 
 
 def refine_finer(refined, selection, problem, meas, method, budget, key, say):
@@ -1851,7 +1854,7 @@ def summarise(meas, refined, selection, polished, *, method, variant, seed, budg
 
 def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounces=FIT_BOUNCES,
         jacobian_walks=FIT_JACOBIAN_WALKS, starts=15, refine=1, fit_t=False, fit_phi=False, start=None, t=16.0,
-        interface=None, finer=True, final_step=True, progress=None):
+        interface=None, finer=True, final_step=True, thin_after=None, progress=None):
     """Fit a one-layer material of ``variant`` to the measurements ``meas``.
 
     Args:
@@ -1897,6 +1900,14 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         final_step: take the last step on the best check's residuals (LM;
             :func:`polish`). ``False`` keeps the minimum of the fixed-key
             objective itself.
+        thin_after: the steps every walk of the refinements' objective (and
+            so of their checks) makes, later steps made by fewer walks
+            (:func:`~jaxcos.simulate`); ``None`` (the default): every walk
+            makes every step. The screen and the finer refinement make every
+            step with every walk. With 16 the bundled fits took up to 27%
+            less time, recovered as many random materials, but checked worse
+            on dewy2 (1.54 +- 0.10 against 1.12 +- 0.10; benchmarks/RESULTS.md,
+            decision records).
         progress: a callable ``progress(message)`` told about each stage (default: none).
 
     Returns:
@@ -1915,7 +1926,8 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     x_default = param.from_material(template)
     budget = Budget.of(walks, bounces, jacobian_walks)
     problem = make_problem(meas, param, key=key, walks=budget.walks, bounces=budget.bounces,
-                           reference=param.to_material(x_default), jacobian_walks=budget.jacobian_walks)
+                           reference=param.to_material(x_default), jacobian_walks=budget.jacobian_walks,
+                           thin_after=thin_after)
     refiner = Refiner(problem, meas, method, budget)
 
     if start is not None:
