@@ -253,8 +253,13 @@ def errors(fitted, truth, variant):
 
 
 def _thin_after(text):
-    """``--thin-after``: a step count, or ``None`` for ``"none"`` (every walk making every step)."""
-    return None if text == "none" else int(text)
+    """``--thin-after``: ``"default"`` (the fit's own), ``None`` for ``"none"`` (every walk making every step), or a
+    positive step count."""
+    if text in ("default", "none"):
+        return None if text == "none" else text
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive step count, 'none' or 'default', not {text!r}")
+    return int(text)
 
 
 def run_set(args, index):
@@ -267,7 +272,7 @@ def run_set(args, index):
     simulated = time.perf_counter() - started
     stages = []
     t0 = time.perf_counter()
-    options = {} if args.thin_after == "default" else dict(thin_after=_thin_after(args.thin_after))
+    options = {} if args.thin_after == "default" else dict(thin_after=args.thin_after)
     result = jaxcos.fit(meas, seed=args.fit_seed, interface=args.interface or None, finer=not args.no_finer,
                         progress=lambda m: stages.append(round(time.perf_counter() - t0, 1)), **options)
     fit_time = time.perf_counter() - t0
@@ -407,7 +412,7 @@ def main():
                         help="truths under a top interface (draw_interface), fitted with --interface")
     parser.add_argument("--no-finer", action="store_true",
                         help="fit with finer=False (the selected start not refined again at 4x the walks)")
-    parser.add_argument("--thin-after", default="default",
+    parser.add_argument("--thin-after", type=_thin_after, default="default",
                         help="the fit's thin_after (jaxcos.fit), a step count or 'none' (default: the fit's own)")
     parser.add_argument("--report-only", action="store_true", help="rewrite sets.csv and summary.md from sets.jsonl")
     args = parser.parse_args()

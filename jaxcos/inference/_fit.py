@@ -1904,10 +1904,9 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
             so of their checks) makes, later steps made by fewer walks
             (:func:`~jaxcos.simulate`); ``None`` (the default): every walk
             makes every step. The screen and the finer refinement make every
-            step with every walk. With 16 the bundled fits took up to 27%
-            less time, recovered as many random materials, but checked worse
-            on dewy2 (1.54 +- 0.10 against 1.12 +- 0.10; benchmarks/RESULTS.md,
-            decision records).
+            step with every walk (measured side by side with the default in
+            benchmarks/RESULTS.md, decision records, "Fewer walks for the
+            later steps").
         progress: a callable ``progress(message)`` told about each stage (default: none).
 
     Returns:
