@@ -172,46 +172,71 @@ def test_jacobian_comes_from_the_first_walks():
     make = lambda **kw: make_problem(data, param, key=jax.random.key(SEED), bounces=16, reference=START, **kw)
     full, few, mixed = make(walks=32), make(walks=8), make(walks=32, jacobian_walks=8)
     np.testing.assert_array_equal(np.asarray(mixed.residuals(x)), np.asarray(full.residuals(x)))
-    jac = lambda p: np.asarray(jax.jacfwd(p.residuals)(x))
-    np.testing.assert_allclose(jac(mixed), jac(few), rtol=1e-6, atol=1e-12)
+    jac = lambda p: np.asarray(p.jacobian(x)[0])
+    np.testing.assert_array_equal(jac(mixed), jac(few))
+    np.testing.assert_array_equal(np.asarray(mixed.jacobian(x)[1]), np.asarray(few.residuals(x)))
     assert not np.allclose(jac(full), jac(few))
 
 
 @pytest.mark.parametrize("variant, extra", [("two_lobe", {}), ("single_lobe", {}), ("diffusers_only", {}),
-                                            ("platelets_only", {}), ("two_lobe", {"fit_t": True, "fit_phi": True})])
+                                            ("platelets_only", {}), ("two_lobe", {"fit_t": True, "fit_phi": True}),
+                                            ("two_lobe", {"interface": True})])
 def test_coloured_jacobian_is_the_full_one(variant, extra):
-    """The fit's Jacobian (one tangent per RGB parameter) equals ``jax.jacfwd`` of the plain residuals, and its
-    differenced columns the central differences of the same walks.
+    """The fit's Jacobian (one move per RGB parameter) equals the differences of one entry at a time, its
+    one-sided columns agree with forward-mode derivatives of the same walks to their truncation error, and
+    its central ones are the central differences of those walks.
 
     The check can fail: a walk that coupled colour channels (lobe probabilities
-    recomputed from the albedos, say) would put non-zero entries where the
-    colouring assumes zeros.
+    recomputed from the albedos, say) would change the rows of the other
+    channels, and an error of assembly (a column, sign, step or channel mask)
+    is of the column's own size.
     """
-    from jaxcos.inference._fit import _residuals
-
     data = _synthetic(TRUTH, START)
     param = parameterization(variant, template=START, **extra)
     problem = make_problem(data, param, key=jax.random.key(SEED), walks=16, bounces=16, reference=START)
     x = param.from_material(TRUTH) + 0.1
-    coloured = np.asarray(jax.jacfwd(problem.residuals)(x))
-    fn = lambda v: _residuals.fun(problem, v)
-    plain = np.array(jax.jacfwd(fn)(x))
-    steps = param.difference_steps()
-    moved = np.flatnonzero(steps)
-    e = np.zeros((moved.size, x.size), np.float32)
-    e[np.arange(moved.size), moved] = steps[moved]
-    ends = np.asarray(jax.vmap(fn)(jnp.concatenate([x + e, x - e])))  # batched as the fit's differences are
-    plain[:, moved] = (ends[:moved.size] - ends[moved.size:]).T / (2 * steps[moved])
+    coloured, y = (np.asarray(a, float) for a in problem.jacobian(x))
+    r = lambda v: np.asarray(problem.residuals(jnp.asarray(v, x.dtype)), float)
+    np.testing.assert_array_equal(y, r(x))
+    steps, central = param.difference_steps()
+    assert set(np.array(param.labels())[central]) == (
+        {"g1", "g2", "alpha_p", "theta_p", "phi_p", "eta", "alpha_s"} & set(param.labels()))
     seeds, _, _ = param.colouring()
     assert len(seeds) == len(param.names) < param.size
-    assert set(np.array(param.labels())[moved]) == {"g1", "g2", "alpha_p", "theta_p"} & set(param.labels())
-    ahead = steps == 0
-    np.testing.assert_allclose(coloured[:, ahead], plain[:, ahead], rtol=1e-5, atol=1e-6 * np.abs(plain).max())
-    # Differences of float32 residuals from two programs (summed in other orders): the residuals agreed to 9e-6 of
-    # the largest; an error of assembly (a column, sign or channel mask) is of the column's own size.
-    rounding = 1e-4 * np.abs(np.asarray(fn(x))).max() / (2 * steps[moved].min())
-    np.testing.assert_allclose(coloured[:, moved], plain[:, moved], rtol=1e-5, atol=rounding)
-    assert np.abs(plain[:, moved]).max() > 100 * rounding
+    eye = np.eye(x.size)
+    plain = np.stack([(r(x + h * e) - r(x - h * e)) / (2 * h) if c else (r(x + h * e) - y) / h
+                      for e, h, c in zip(eye, steps, central)], axis=1)
+    # float32 residuals of moved points, summed in the walk's order: an evaluation's rounding, over the step
+    rounding = 4 * np.finfo(np.float32).eps * np.abs(y).max() / steps.min()
+    np.testing.assert_allclose(coloured, plain, rtol=1e-5, atol=rounding)
+    # one-sided columns: forward mode of the same walks, within the truncation error h/2 |r''| (r'' from a
+    # second difference of those walks at the same step) and the rounding
+    ahead = ~central
+    forward = np.asarray(jax.jacfwd(problem.residuals)(x), float)[:, ahead]
+    curvature = np.stack([(r(x + 2 * h * e) - 2 * r(x + h * e) + y) / h ** 2
+                          for e, h in zip(eye[ahead], steps[ahead])], axis=1)
+    bound = steps[ahead] * np.abs(curvature) + 4 * rounding
+    assert np.all(np.abs(coloured[:, ahead] - forward) <= bound)
+    assert np.abs(forward).max() > 100 * rounding
+
+
+def test_many_walks_are_walked_in_chunks(monkeypatch):
+    """A problem of more walks than ``CHUNK_WALKS`` walks them in chunks: the same walks as one evaluation, and the
+    standard error of the mean of the chunks' means."""
+    import jaxcos.inference._fit as fitting
+
+    monkeypatch.setattr(fitting, "CHUNK_WALKS", 8)
+    data = _synthetic(TRUTH, START)
+    param = parameterization("single_lobe", template=START)
+    x = param.from_material(TRUTH)
+    problem = make_problem(data, param, key=jax.random.key(SEED), walks=32, bounces=16, reference=START)
+    est = problem.estimate(x)
+    run = lambda walks, first: jaxcos.simulate(TRUTH, problem.query, problem.key, walks=walks, bounces=16,
+                                               lobe_probs=problem.lobe_probs, thin_after=None, first=first)
+    np.testing.assert_allclose(np.asarray(est.f), np.asarray(run(32, 0).f), rtol=1e-5, atol=1e-9)
+    chunks = [run(8, jnp.int32(c)) for c in (0, 8, 16, 24)]
+    se = np.sqrt(sum(np.asarray(c.stderr, float) ** 2 for c in chunks)) / 4
+    np.testing.assert_allclose(np.asarray(est.stderr), se, rtol=1e-5)
 
 
 CHECK_KEYS, CHECK_WALKS, REF_WALKS = 32, 32, 2 ** 14
@@ -623,7 +648,8 @@ def test_each_pass_takes_its_lobe_probabilities_where_it_starts(monkeypatch):
 
     def spy(problem, x0, **kw):
         out = real(problem, x0, **kw)
-        calls.append((problem, x0, out[0]))
+        if kw.get("max_steps") != fitting.SCREEN_STEPS:  # not the screen's few steps from each start
+            calls.append((problem, x0, out[0]))
         return out
 
     monkeypatch.setattr(fitting, "solve_lm", spy)

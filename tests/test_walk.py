@@ -866,6 +866,25 @@ def test_incidences_walked_in_sequence_give_the_same_numbers():
     assert not np.allclose(np.asarray(other.f), np.asarray(together.f))
 
 
+@pytest.mark.parametrize("connection, interface, thin_after", [("nee", False, None), ("mis", False, None),
+                                                                ("nee", True, None), ("nee", False, 4)])
+def test_chunks_of_walks_are_the_walks_of_one_evaluation(connection, interface, thin_after):
+    """``first`` picks walks ``first ..`` of the key: two chunks of 8 are the 16 walks of one evaluation (without
+    thinning; thinned chunks thin within themselves), and the chunks differ."""
+    ti, to, po = _t1_pairs()
+    query = jaxcos.make_query(ti, to, po)
+    material = jaxcos.published("dewy2")
+    if interface:
+        material = dataclasses.replace(material, interface=jaxcos.Interface(eta=1.4, alpha_s=0.2))
+    run = lambda walks, first: jaxcos.simulate(material, query, jax.random.key(4), walks=walks, bounces=16,
+                                               connection=connection, thin_after=thin_after, first=first).f
+    a, b = run(8, jnp.int32(0)), run(8, jnp.int32(8))
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(run(8, 0)))
+    assert not np.allclose(np.asarray(a), np.asarray(b))
+    if thin_after is None:
+        np.testing.assert_allclose((np.asarray(a) + np.asarray(b)) / 2, np.asarray(run(16, 0)), rtol=1e-5, atol=1e-9)
+
+
 def test_directions_drawn_from_the_material_itself_give_the_same_numbers():
     """``sampling=material`` (detached) draws the same directions with the same weights as the default."""
     query = jaxcos.make_query([15.0, 45.0, 70.0], [-40.0, 47.0, 10.0])

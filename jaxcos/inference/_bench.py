@@ -11,8 +11,8 @@ for a dewy and a matte product on the standard grid (``theta_i`` 0..75 step 5,
   at fixed walks (the truncation bias, measured apart under common random
   numbers: a walk of ``b`` bounces is the prefix of the same walk of 512);
 * the energy left in unfinished walks, the forward time and the time of the
-  fit's Jacobian (``Problem``'s ``custom_jvp``: batched forward mode against
-  12 parameters, 8 tangents);
+  fit's Jacobian (``Problem.jacobian``: differences of the same walks against
+  12 parameters, 13 evaluations);
 * end to end, fits of a synthetic set whose truth is known
   (``measurements/matte2.csv``, truth ``jaxcos.published("matte2")``, 2 % + 0.002
   noise) at several budgets: the fit time, the chi-square of the fitted
@@ -221,7 +221,7 @@ def bsdf_problem(material, query, key, walks, bounces):
 
     Two-lobe parameterization (12 entries of ``x``), residuals ``f`` (zero
     data, unit weights), lobe probabilities of ``material``: its Jacobian is
-    the fit's (``jax.jacfwd(problem.residuals)``, coloured forward mode).
+    the fit's (:meth:`~jaxcos.inference.Problem.jacobian`, coloured differences of the same walks).
     """
     import jax.numpy as jnp
 
@@ -241,7 +241,7 @@ def _jacobian(material, query, walks, bounces):
     import jax.numpy as jnp
 
     problem, x0 = bsdf_problem(material, query, jax.random.key(1000), walks, bounces)
-    jac = jax.jit(jax.jacfwd(problem.residuals))
+    jac = lambda x: problem.jacobian(x)[0]
     load_before = _load()
     _, t_first = _timed(jac, x0)
     cpu = []
@@ -249,7 +249,7 @@ def _jacobian(material, query, walks, bounces):
     return dict(jacobian_s=min(runs), jacobian_runs_s=runs, jacobian_cpu_s=min(cpu),
                 jacobian_compile_s=max(t_first - min(runs), 0.0),
                 jacobian_load=[load_before, _load()], n_params=int(jnp.size(x0)),
-                n_tangents=len(problem.param.colouring()[0]))
+                n_evaluations=problem.param.jacobian_evaluations())
 
 
 def _errors(estimates, ref, keep):

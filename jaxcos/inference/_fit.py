@@ -5,9 +5,9 @@ The objective is the sum of squared residuals ``(model - measured) / std``
 quantity (docs/formats.md), over every measured point and colour channel. The
 model is the Monte Carlo BSDF of docs/model.md under a fixed key and fixed
 lobe-selection probabilities (common random numbers), so the objective is a
-deterministic, smooth function of the parameters and its Jacobian comes from
-forward-mode differentiation of the walk (of its first
-:data:`FIT_JACOBIAN_WALKS` walks: a descent direction needs no more). The lobe
+deterministic function of the parameters, and its Jacobian comes from
+differences of the same walks (of its first :data:`FIT_JACOBIAN_WALKS` walks:
+a descent direction needs no more; :meth:`Problem.jacobian`). The lobe
 probabilities and the Monte Carlo share of the weights are fixed numbers
 within a solver pass, set again at the start of each of :data:`PASSES`
 passes.
@@ -41,6 +41,7 @@ Example::
 import abc
 import concurrent.futures
 import dataclasses
+import functools
 import threading
 import time
 from typing import ClassVar, NamedTuple
@@ -269,9 +270,9 @@ class Parameterization(eqx.Module):
         RGB parameter's component ``c`` (``albedo_d[c]``) acts on channel ``c``
         alone: no random decision of a walk looks at colour (the lobe
         probabilities are fixed numbers). The three columns of such a
-        parameter never share a row, so one tangent, their sum, gives all
-        three (a Curtis-Powell-Reid colouring): the two-lobe model's 12
-        columns cost 8 forward-mode tangents. ``seeds`` is ``(K, size)``;
+        parameter never share a row, so one move of all three gives all
+        three columns (a Curtis-Powell-Reid colouring): the two-lobe model's
+        12 columns cost 8 moves (:meth:`Problem.jacobian`). ``seeds`` is ``(K, size)``;
         entry ``j`` of ``x`` reads column ``column[j]`` of the compressed
         Jacobian, at the rows of channel ``channel[j]`` (``-1``: every row).
         """
@@ -286,9 +287,19 @@ class Parameterization(eqx.Module):
         return np.array(seeds), np.array(column), np.array(channel)
 
     def difference_steps(self):
-        """``(size,)``: the central-difference step of each entry of ``x`` in the fit's Jacobian, 0 where it is
-        taken in forward mode (:data:`DIFFERENCED`)."""
-        return np.concatenate([np.full(RANGES[n].size, DIFFERENCED.get(n, 0.0)) for n in self.names])
+        """``(steps, central)``, each ``(size,)``: the difference step of each entry of ``x`` in the fit's
+        Jacobian (:meth:`Problem.jacobian`) and whether the difference is central (:data:`DIFFERENCED`) or
+        one-sided (:data:`FORWARD_STEP`)."""
+        expand = lambda f: np.concatenate([np.full(RANGES[n].size, f(n)) for n in self.names])
+        return expand(lambda n: DIFFERENCED.get(n, FORWARD_STEP)), expand(lambda n: n in DIFFERENCED)
+
+    def jacobian_evaluations(self):
+        """The evaluations of the objective a Jacobian takes (:meth:`Problem.jacobian`): the point itself, two per
+        centrally differenced move, one per other move."""
+        _, column, _ = self.colouring()
+        _, central = self.difference_steps()
+        first = [int(np.flatnonzero(column == k)[0]) for k in range(int(column.max()) + 1)]
+        return 1 + sum(2 if central[j] else 1 for j in first)
 
     def bounds(self):
         """``(low, high)``: the fit's bounds of each :meth:`labels` entry (``jaxcos.model.RANGES``), the support of
@@ -368,7 +379,10 @@ class WeightedLeastSquares(eqx.Module):
         reflectance's level, which the diffusers' albedo restores in one
         step; this loss compares moves by the shape they leave.
         """
-        m = self.model(x)
+        return self.levelled(self.model(x))
+
+    def levelled(self, m):
+        """:meth:`levelled_loss` of a model ``m`` ``(N, 3)`` in the file's quantity."""
         w = 1.0 / self.sigma ** 2
         a = jnp.sum(w * m * self.measured, axis=0) / jnp.maximum(jnp.sum(w * m * m, axis=0), 1e-30)
         return jnp.sum(w * (a * m - self.measured) ** 2)
@@ -380,9 +394,14 @@ class Problem(WeightedLeastSquares):
     ``residuals(x)`` are ``(model - measured) / std``, flattened over points
     and channels (:class:`WeightedLeastSquares`); ``model`` is in the file's quantity (``scale`` times the
     BSDF, :attr:`jaxcos.io.Measurements.scale`). Their value uses ``walks`` walks; their
-    Jacobian (forward mode, a ``custom_jvp``) the first ``jacobian_walks`` of them (all when
+    Jacobian (:meth:`jacobian`) differences of the first ``jacobian_walks`` of them (all when
     ``None``). ``thin_after``: ``simulate``'s; ``None`` by default, every walk making every
     step.
+
+    Every evaluation runs one compiled program per budget and connection
+    (:func:`_estimate`): the value, the Jacobian's differences, the checks'
+    batches and the report's estimate at the same walks share it, whatever
+    the key, lobe probabilities, weights or start.
     """
 
     param: Parameterization
@@ -395,95 +414,126 @@ class Problem(WeightedLeastSquares):
     walks: int = eqx.field(static=True)
     bounces: int = eqx.field(static=True)
     jacobian_walks: int = eqx.field(static=True, default=None)
-    incidence_batch: int = eqx.field(static=True, default=None)
     connection: str = eqx.field(static=True, default="nee")
     boundary_prob: jnp.ndarray = None
     thin_after: int = eqx.field(static=True, default=None)
 
     def estimate(self, x):
-        """The :class:`~jaxcos.Estimate` of the material at ``x`` under this problem's key and budget."""
-        return simulate(self.param.to_material(x), self.query, self.key, walks=self.walks,
-                        bounces=self.bounces, lobe_probs=self.lobe_probs, incidence_batch=self.incidence_batch,
-                        connection=self.connection, boundary_prob=self.boundary_prob, thin_after=self.thin_after)
+        """The :class:`~jaxcos.Estimate` of the material at ``x`` under this problem's key and budget.
+
+        More walks than :data:`CHUNK_WALKS`, a multiple of them, are walked in
+        chunks of that many (walks ``c * CHUNK_WALKS ...`` of the key, the
+        same walks as in one evaluation), so that the finer refinement runs
+        the compiled program of the fit's own walks and of the checks' batches.
+        """
+        chunks = self.walks // CHUNK_WALKS if self.walks > CHUNK_WALKS and self.walks % CHUNK_WALKS == 0 else 1
+        if chunks == 1:
+            return _estimate(self, x, np.int32(0))
+        sub = dataclasses.replace(self, walks=CHUNK_WALKS)
+        return _pool([_estimate(sub, x, np.int32(c * CHUNK_WALKS)) for c in range(chunks)])
 
     def model(self, x):
         """The model in the file's quantity, ``(N, 3)``."""
         return self.scale * self.estimate(x).f
 
     def residuals(self, x):
-        """The residuals at ``x``; their derivative is the Jacobian of the first ``jacobian_walks`` walks."""
-        return _residuals(self, x)
+        """The residuals at ``x``, flattened over points and channels (colour channel last)."""
+        return _weigh(self, self.estimate(x).f)
+
+    def jacobian(self, x):
+        """The residuals' Jacobian ``(M, P)`` at ``x`` and the residuals it comes with.
+
+        Differences of the first ``jacobian_walks`` walks under the
+        problem's key (the walks' random numbers do not depend on their count,
+        see ``_walk._uniforms``), one evaluation of the objective's own
+        compiled program per moved point: central differences along the
+        parameters of :data:`DIFFERENCED`, which move a sampled direction,
+        one-sided ones of :data:`FORWARD_STEP` along the others. The colour
+        channels' columns share a move (:meth:`Parameterization.colouring`):
+        no random decision of a walk looks at colour, so the move of all three
+        components of an RGB parameter changes each channel by its own
+        component's column. The two-lobe model's 12 columns cost 13
+        evaluations at ``jacobian_walks`` (benchmarks/RESULTS.md, decision
+        records, "The fit's Jacobian by differences").
+        """
+        sub = dataclasses.replace(self, walks=_jacobian_walks(self))
+        seeds, column, channel = self.param.colouring()
+        steps, central = self.param.difference_steps()
+        first = [int(np.flatnonzero(column == k)[0]) for k in range(len(seeds))]
+        h = np.array([steps[j] for j in first], np.float32)
+        back = np.array([central[j] for j in first])
+        x = np.asarray(x)
+        moves = (seeds * h[:, None]).astype(x.dtype)
+        points = np.concatenate([x[None], x + moves, x - moves[back]])
+        ys = [sub.residuals(p) for p in points]
+        return _assemble(ys, h, tuple(back.tolist()), column, channel), ys[0]
 
 
-@jax.custom_jvp
-def _residuals(problem, x):
-    return WeightedLeastSquares.residuals(problem, x)
+CHUNK_WALKS = FIT_WALKS
+"""The most walks of one evaluation of a :class:`Problem` (:meth:`Problem.estimate`)."""
+
+@eqx.filter_jit
+def _estimate(problem, x, first):
+    """:meth:`Problem.estimate`'s walks ``first .. first + walks - 1``: one compiled program per static budget
+    (``first`` an array, so that every chunk shares it)."""
+    return simulate(problem.param.to_material(x), problem.query, problem.key, walks=problem.walks,
+                    bounces=problem.bounces, lobe_probs=problem.lobe_probs, connection=problem.connection,
+                    boundary_prob=problem.boundary_prob, thin_after=problem.thin_after, first=first)
 
 
-DIFFERENCED = dict(g1=0.05, g2=0.05, alpha_p=0.02, theta_p=0.02)
+@jax.jit
+def _pool(estimates):
+    """The :class:`~jaxcos.Estimate` of the walks of equal chunks ``estimates`` together (a mean of their means)."""
+    mean = jax.tree.map(lambda *a: sum(a) / len(a), *estimates)
+    stderr = jnp.sqrt(sum(e.stderr ** 2 for e in estimates)) / len(estimates)
+    return dataclasses.replace(mean, stderr=stderr)
+
+
+@eqx.filter_jit
+def _weigh(problem, f):
+    """The residuals of the BSDF ``f`` ``(N, 3)`` under ``problem``'s weights (one small compiled program)."""
+    return problem.weigh(problem.scale * f)
+
+
+@functools.partial(jax.jit, static_argnums=(2,))
+def _assemble(ys, h, back, column, channel):
+    """The Jacobian ``(M, P)`` from the residuals ``ys`` at the points of :meth:`Problem.jacobian`.
+
+    ``ys``: at ``x``, at ``x + h_k e_k`` for every move ``k``, then at ``x -
+    h_k e_k`` for the central ones (``back``, static). Column ``k`` of the
+    coloured Jacobian is the difference of move ``k``; entry ``j`` of ``x``
+    reads column ``column[j]`` at the rows of its channel ``channel[j]``
+    (``-1``: every row).
+    """
+    y, ahead = ys[0], jnp.stack(ys[1:1 + len(h)], axis=1)
+    behind = jnp.stack([y] * len(h), axis=1)
+    if any(back):
+        behind = behind.at[:, np.flatnonzero(np.array(back))].set(jnp.stack(ys[1 + len(h):], axis=1))
+    packed = (ahead - behind) / jnp.where(np.asarray(back), 2.0 * h, h)
+    row_channel = jnp.arange(y.shape[0]) % 3
+    mask = (channel[None, :] < 0) | (channel[None, :] == row_channel[:, None])
+    return packed[:, column] * mask
+
+
+DIFFERENCED = dict(g1=0.05, g2=0.05, alpha_p=0.02, theta_p=0.02, phi_p=0.02, eta=0.02, alpha_s=0.02)
 """The parameters whose columns of the fit's Jacobian are central differences under the problem's key, with
 their steps in the fit's coordinates ``x``. Each moves a sampled direction (a diffuser lobe's, a platelet's
-normal), and its forward-mode derivative carries the derivative of the lobes evaluated at that direction, which
-under a narrow platelet lobe is heavy-tailed: on dewy1's fit at 128 walks the forward-mode column of ``g1`` was
-36 times as long as a 16384-walk difference and uncorrelated with it (cosine -0.02; differences at 128 walks:
-0.65-0.81), and ``alpha_p``'s cosine 0.53 (differences 0.99-1.00) (benchmarks/RESULTS.md, decision records)."""
+normal, a microfacet's normal or a refracted direction), so that the objective under one key is rough along it:
+forward-mode derivatives of the walk were heavy-tailed there (on dewy1's fit at 128 walks the column of ``g1``
+was 36 times as long as a 16384-walk difference and uncorrelated with it, cosine -0.02; differences at 128
+walks: 0.65-0.81), and differences over a step average the roughness out (benchmarks/RESULTS.md, decision
+records)."""
+
+FORWARD_STEP = 0.01
+"""The step in ``x`` of the one-sided differences along every parameter not in :data:`DIFFERENCED`: the
+albedos, ``c_d``, ``w_g`` and ``t`` only reweight the walks (the lobe probabilities are held fixed), and
+their differences at this step had cosines of 0.9999-1.0000 with forward-mode derivatives of the same walks
+on the four bundled sets (lengths within 0.6%; benchmarks/RESULTS.md, decision records)."""
 
 
 def _jacobian_walks(problem):
     """The walks the Jacobian of ``problem`` is taken from: ``jacobian_walks``, at most ``walks``."""
     return problem.walks if problem.jacobian_walks is None else min(problem.jacobian_walks, problem.walks)
-
-
-def _jacobian(problem, x):
-    """The residuals' Jacobian ``(M, P)`` at ``x`` and the residuals it comes with.
-
-    Batched forward mode, materialised once: linearising the walk instead
-    would store every bounce's intermediates. With
-    ``jacobian_walks < walks`` it is that of the first ``jacobian_walks`` walks
-    (the walks' random numbers do not depend on their count, see
-    ``_walk._uniforms``), and so are the residuals returned with it. The colour
-    channels' columns share tangents (:meth:`Parameterization.colouring`). The
-    columns of :data:`DIFFERENCED` are central differences of those walks
-    under the same key instead. The incidences are walked one after another
-    (``incidence_batch=1``), which was faster than vectorising them
-    (benchmarks/RESULTS.md, decision records).
-    """
-    sub = dataclasses.replace(problem, walks=_jacobian_walks(problem), incidence_batch=1)
-    fn = lambda v: _residuals.fun(sub, v)
-    seeds, column, channel = problem.param.colouring()
-    steps = problem.param.difference_steps()
-    tangents = sorted({int(c) for c, h in zip(column, steps) if h == 0})
-    if tangents:
-        y, packed = jax.vmap(lambda e: jax.jvp(fn, (x,), (e,)), out_axes=(None, -1))(
-            jnp.asarray(seeds[tangents], x.dtype))
-    else:
-        y, packed = fn(x), None
-    differenced = np.flatnonzero(steps)
-    if differenced.size:
-        moves = np.zeros((differenced.size, x.size))
-        moves[np.arange(differenced.size), differenced] = steps[differenced]
-        moves = jnp.asarray(moves, x.dtype)
-        ends = jax.vmap(fn)(jnp.concatenate([x + moves, x - moves]))
-        diffs = (ends[:differenced.size] - ends[differenced.size:]).T / jnp.asarray(2 * steps[differenced], x.dtype)
-    row_channel = np.arange(y.shape[0]) % 3
-    cols = []
-    for j in range(x.size):
-        if steps[j]:
-            cols.append(diffs[:, int(np.searchsorted(differenced, j))])
-        else:
-            mask = (channel[j] < 0) | (channel[j] == row_channel)
-            cols.append(packed[:, tangents.index(int(column[j]))] * mask)
-    return jnp.stack(cols, axis=1), y
-
-
-@_residuals.defjvp
-def _residuals_jvp(primals, tangents):
-    problem, x = primals
-    _, dx = tangents
-    jac, y = _jacobian(problem, x)
-    if _jacobian_walks(problem) < problem.walks:
-        y = _residuals.fun(problem, x)
-    return y, jac @ dx
 
 
 def make_problem(meas, param, *, key, walks=FIT_WALKS, bounces=FIT_BOUNCES, lobe_probs=None, reference=None,
@@ -577,22 +627,30 @@ class LevenbergMarquardtState(eqx.Module):
     small_steps: jnp.ndarray
 
 
+def _quiet(**kwargs):
+    """The default ``verbose`` of :class:`LevenbergMarquardt`: says nothing."""
+
+
 class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
     """Levenberg-Marquardt with a Jacobian only where a step is accepted, and a stop on the loss.
 
     Built from optimistix's public pieces: its damped Newton descent
     (``optx.DampedNewtonDescent``), classical trust region
     (``optx.ClassicalTrustRegion``) and Cauchy termination on ``y`` and the
-    residuals, driven by ``optx.least_squares`` (which sets ``max_steps``),
-    with a state of its own (:class:`LevenbergMarquardtState`). Its iterates
-    are those of ``optx.LevenbergMarquardt``; what differs is when the
-    Jacobian is computed: the trust region accepts or rejects a step on the value at the
-    new point alone, so this solver evaluates the value first and computes
-    the Jacobian (materialised, by forward mode; :func:`_jacobian` when
-    ``args`` is the :class:`Problem` whose residuals ``fn`` returns) only
-    when the step is accepted. A rejected step then costs one evaluation
+    residuals, with a state of its own (:class:`LevenbergMarquardtState`).
+    Its iterates are those of ``optx.LevenbergMarquardt``; what differs is
+    when the Jacobian is computed: the trust region accepts or rejects a step
+    on the value at the new point alone (:meth:`judge`), so this solver
+    evaluates the value first and computes the Jacobian only when the step
+    is accepted (:meth:`update`). A rejected step then costs one evaluation
     instead of a Jacobian; near the optimum many steps are rejected, the
     few-walk Jacobian's slope not being the full value's.
+
+    It runs under ``optx.least_squares`` like any optimistix solver (its
+    :meth:`step` takes the Jacobian by ``jax.jacfwd``), and step by step
+    from the host (:func:`solve_lm`), where the value and the Jacobian are
+    the Monte Carlo problem's own compiled programs and only the solver's
+    arithmetic is compiled here.
 
     Under a fixed key the objective is rough along the parameters that move
     sampled directions (``docs/derivatives.md``). Near its optimum LM then
@@ -617,12 +675,11 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         self.rtol, self.atol, self.norm = rtol, atol, optx.max_norm
         self.descent = optx.DampedNewtonDescent()
         self.search = optx.ClassicalTrustRegion()
-        self.verbose = lambda **kwargs: None
+        self.verbose = _quiet
         self.loss_rtol, self.patience = loss_rtol, patience
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        # The Jacobian is kept as a matrix; nothing of fn is traced here (a linearisation of the walk
-        # only for the state's structure would take seconds of tracing).
+        # The Jacobian is kept as a matrix; nothing of fn is traced here.
         f_info = optx.FunctionInfo.ResidualJac(
             jnp.zeros(f_struct.shape, f_struct.dtype),
             lx.MatrixLinearOperator(jnp.zeros(f_struct.shape + y.shape, f_struct.dtype), tags))
@@ -638,17 +695,24 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         return ((self.norm(y_diff / (self.atol + self.rtol * jnp.abs(y_eval))) < 1)
                 & (self.norm(f_diff / (self.atol + self.rtol * jnp.abs(residual))) < 1))
 
-    def step(self, fn, y, args, options, state, tags):
-        residual, aux = fn(state.y_eval, args)
-        probe = optx.FunctionInfo.ResidualJac(residual, state.f_info.jac)  # the search reads the value alone
-        size, accept, found, search_state = self.search.step(state.first_step, y, state.y_eval, state.f_info, probe,
-                                                             state.search_state)
+    def judge(self, y, state, residual):
+        """The trust region's verdict on the step to ``state.y_eval``, from the residuals there alone.
+
+        Returns ``(size, accept, found, search_state)`` (``optx.ClassicalTrustRegion.step``).
+        """
+        probe = optx.FunctionInfo.ResidualJac(residual, state.f_info.jac)
+        return self.search.step(state.first_step, y, state.y_eval, state.f_info, probe, state.search_state)
+
+    def update(self, y, state, residual, aux, verdict, jac, tags):
+        """``(y, state)`` after the step to ``state.y_eval``, given :meth:`judge`'s ``verdict``.
+
+        ``jac``: the Jacobian ``(M, P)`` of the residuals at ``state.y_eval``
+        where the step is accepted; where it is rejected it is not read (any
+        matrix of that shape).
+        """
+        size, accept, found, search_state = verdict
 
         def accepted(_):
-            if isinstance(args, Problem):  # its residuals are fn's; no evaluation at the full budget is traced
-                jac = _jacobian(args, state.y_eval)[0]
-            else:
-                jac = jax.jacfwd(lambda x: fn(x, args)[0])(state.y_eval)
             f_info = optx.FunctionInfo.ResidualJac(residual, lx.MatrixLinearOperator(jac, tags))
             converged = self._converged(state.y_eval - y, state.y_eval, residual - state.f_info.residual, residual)
             return state.y_eval, f_info, aux, self.descent.query(state.y_eval, f_info, state.descent_state), converged
@@ -659,9 +723,6 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
             return y, state.f_info, state.aux, state.descent_state, tiny
 
         before, after = jnp.sum(state.f_info.residual ** 2), jnp.sum(residual ** 2)
-        self.verbose(num_steps=("Step", state.num_steps), step_size=("Step size", size),
-                     loss_this_step=("Loss on this step", 0.5 * after),
-                     loss_last_accepted_step=("Loss on the last accepted step", 0.5 * before))
         y, f_info, aux, descent_state, terminate = jax.lax.cond(accept, accepted, rejected, None)
         y_descent, result = self.descent.step(size, descent_state)
         small = jnp.where(accept & (state.num_accepted_steps >= 1),
@@ -674,7 +735,19 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
             num_steps=state.num_steps + 1, num_accepted_steps=state.num_accepted_steps + jnp.where(accept, 1, 0),
             num_steps_since_acceptance=jnp.where(accept, 0, state.num_steps_since_acceptance + 1),
             small_steps=small)
-        return y, new, aux
+        return y, new
+
+    def step(self, fn, y, args, options, state, tags):
+        residual, aux = fn(state.y_eval, args)
+        verdict = self.judge(y, state, residual)
+        jac = jax.lax.cond(verdict[1], lambda _: jax.jacfwd(lambda x: fn(x, args)[0])(state.y_eval),
+                           lambda _: state.f_info.jac.as_matrix(), None)
+        self.verbose(num_steps=("Step", state.num_steps), step_size=("Step size", verdict[0]),
+                     loss_this_step=("Loss on this step", 0.5 * jnp.sum(residual ** 2)),
+                     loss_last_accepted_step=("Loss on the last accepted step",
+                                              0.5 * jnp.sum(state.f_info.residual ** 2)))
+        y, new = self.update(y, state, residual, aux, verdict, jac, tags)
+        return y, new, new.aux
 
     def terminate(self, fn, y, args, options, state, tags):
         return state.terminate, state.result
@@ -683,49 +756,78 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         return y, aux, {}
 
 
-@eqx.filter_jit
-def _lm(problem, x0, max_steps, rtol, atol):
-    solver = LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(lambda x, p: p.residuals(x), solver, x0, args=problem, max_steps=max_steps, throw=False)
-    state = sol.state
-    # the residuals and Jacobian at the last accepted point, the solution (the first step is always accepted):
-    # no further evaluation, and so no further copy of the walk in the compiled program
-    return (sol.value, jnp.sum(state.f_info.residual ** 2), sol.stats["num_steps"], state.num_accepted_steps,
-            state.f_info.jac.as_matrix())
+@functools.cache
+def _solver(rtol, atol):
+    """The :class:`LevenbergMarquardt` of these tolerances, held as arrays: one compiled step serves them all."""
+    dtype = jnp.result_type(float)
+    return LevenbergMarquardt(rtol=jnp.asarray(rtol, dtype), atol=jnp.asarray(atol, dtype))
 
 
 @eqx.filter_jit
-def _screen(problem, xs, keys):
-    """A few Levenberg-Marquardt steps from each row of ``xs``; the ends and their batch residuals.
+def _lm_init(solver, y, f_struct):
+    return solver.init(None, y, None, {}, f_struct, None, frozenset())
 
-    The starts run one after another in one compiled loop (``lax.map``): under
-    ``vmap`` the walk was traced and compiled several times over, and the
-    solver's accept/reject branch became a select that computed the Jacobian
-    at every step (benchmarks/RESULTS.md, decision records). Each start samples with its own lobe probabilities: a
-    start far from the default one would otherwise be simulated with the
-    wrong lobes, noisily. Each end is then evaluated under every key of
-    ``keys`` (independent batches, for :func:`_pair_chi2`). Returns the ends
-    ``(S, P)`` and residuals ``(S, K, M)``.
-    """
-    def one(x):
-        prob = dataclasses.replace(problem, lobe_probs=_lobe_probabilities_at(problem.param, x))
-        end = _lm(prob, x, SCREEN_STEPS, 1e-3, 1e-3)[0]
-        prob = dataclasses.replace(prob, lobe_probs=_lobe_probabilities_at(problem.param, end))
-        return end, jax.lax.map(lambda k: _residuals.fun(dataclasses.replace(prob, key=k), end), keys)
 
-    return jax.lax.map(one, xs)
+@eqx.filter_jit
+def _lm_judge(solver, y, state, residual):
+    return solver.judge(y, state, residual)
+
+
+@eqx.filter_jit
+def _lm_update(solver, y, state, residual, verdict, jac):
+    """:meth:`LevenbergMarquardt.update`, whether to stop, and the loss at the last accepted point."""
+    y, state = solver.update(y, state, residual, None, verdict, jac, frozenset())
+    stop = state.terminate | (state.result != optx.RESULTS.successful)
+    return y, state, stop, jnp.sum(state.f_info.residual ** 2)
 
 
 def solve_lm(problem, x0, *, max_steps=40, rtol=1e-4, atol=1e-5, jacobian=False):
     """Levenberg-Marquardt from ``x0``; returns ``(x, loss, steps, accepted)``, and the Jacobian at ``x`` if asked.
 
-    Every step evaluates the residuals; the ``accepted`` ones also their Jacobian.
-    ``jacobian``: also return the residuals' Jacobian ``(M, P)`` at ``x``, the
-    one the last accepted step computed (at ``problem.jacobian_walks``).
+    Every step evaluates the residuals (:meth:`Problem.residuals`); the
+    ``accepted`` ones also their Jacobian (:meth:`Problem.jacobian`). The
+    loop runs on the host, :class:`LevenbergMarquardt`'s arithmetic in small
+    compiled programs, the walks in the problem's own (:func:`_estimate`):
+    a solver compiled as one program held three copies of the walk and
+    compiled for each stage anew (benchmarks/RESULTS.md, decision records,
+    "Compilation of a cold fit"). Its iterates are those of
+    ``optx.least_squares`` with the same solver (``tests/test_fit.py``).
+    ``jacobian``: also return the residuals' Jacobian ``(M, P)`` at ``x``,
+    the one the last accepted step computed (at ``problem.jacobian_walks``).
     """
-    x, loss, steps, accepted, jac = _lm(problem, x0, max_steps, rtol, atol)
-    out = x, float(loss), int(steps), int(accepted)
-    return out + (jac,) if jacobian else out
+    solver = _solver(float(rtol), float(atol))
+    y = x0
+    state = _lm_init(solver, y, jax.ShapeDtypeStruct((problem.measured.size,), y.dtype))
+    steps, loss = 0, np.inf
+    while steps < max_steps:
+        residual = problem.residuals(state.y_eval)
+        verdict = _lm_judge(solver, y, state, residual)
+        jac = problem.jacobian(state.y_eval)[0] if bool(verdict[1]) else state.f_info.jac.as_matrix()
+        y, state, stop, loss = _lm_update(solver, y, state, residual, verdict, jac)
+        steps += 1
+        if bool(stop):
+            break
+    out = y, float(loss), steps, int(state.num_accepted_steps)
+    return out + (state.f_info.jac.as_matrix(),) if jacobian else out
+
+
+def _screen(problem, xs, keys):
+    """A few Levenberg-Marquardt steps from each row of ``xs``; the ends and their batch residuals.
+
+    The starts run one after another, each sampling with its own lobe
+    probabilities: a start far from the default one would otherwise be
+    simulated with the wrong lobes, noisily. Each end is then evaluated under
+    every key of ``keys`` (independent batches, for :func:`_pair_chi2`).
+    Returns the ends ``(S, P)`` and residuals ``(S, K, M)``.
+    """
+    ends, resid = [], []
+    for x in np.asarray(xs):
+        prob = dataclasses.replace(problem, lobe_probs=_lobe_probabilities_at(problem.param, x))
+        end = solve_lm(prob, x, max_steps=SCREEN_STEPS, rtol=1e-3, atol=1e-3)[0]
+        prob = dataclasses.replace(prob, lobe_probs=_lobe_probabilities_at(problem.param, end))
+        ends.append(end)
+        resid.append(jnp.stack([dataclasses.replace(prob, key=k).residuals(end) for k in keys]))
+    return jnp.stack(ends), jnp.stack(resid)
 
 
 def solve_powell(problem, x0, *, max_evaluations=20000, xtol=1e-4, ftol=1e-8, on_evaluation=None):
@@ -1375,7 +1477,7 @@ def batch_residuals(problem, meas, x, key, walks, batches=CHECK_BATCHES, first=0
         raise ValueError(f"check needs at least 3 batches that divide the walks; got {walks} walks, {batches} batches.")
     sub = dataclasses.replace(problem, walks=walks // batches)
     model = np.stack([problem.scale * np.asarray(dataclasses.replace(sub, key=k).estimate(x).f, float)
-                      for k in _batch_keys(key, batches)[first:]])
+                      for k in _batch_keys(key, batches, first)])
     sigma = np.ones_like(model[0]) if meas.std is None else np.asarray(meas.std, float)
     real = np.all(np.isfinite(sigma), axis=1)  # padded dummy points (jaxcos.ablate) have an infinite std
     return (model - meas.values)[:, real] / sigma[real], model, real, sigma
@@ -1439,9 +1541,10 @@ def gauss_newton_step(problem, jac, pooled, x, *, damping=FINAL_DAMPING):
     return x + jnp.asarray(dx, x.dtype)
 
 
-def _batch_keys(key, n):
-    """``n`` independent keys ``fold_in(key, b)``, stacked: the batches of :func:`check` and of the screen."""
-    return jax.vmap(lambda b: jax.random.fold_in(key, b))(jnp.arange(n))
+def _batch_keys(key, n, first=0):
+    """The independent keys ``fold_in(key, b)`` for ``b = first, ..., n - 1``: the batches of :func:`check` and of
+    the screen."""
+    return [jax.random.fold_in(key, b) for b in range(first, n)]
 
 
 # --- the stages of a fit --------------------------------------------------------------
@@ -1508,9 +1611,9 @@ class Refiner:
     def __init__(self, problem, meas, method, budget):
         self.problem, self.meas, self.method = problem, meas, method
         # in forward evaluations at the fit's walks: LM's value per step at the problem's walks, and
-        # a Jacobian (parameters + 1 forwards at jacobian_walks) per accepted step
+        # a Jacobian (its differences' evaluations at jacobian_walks) per accepted step
         self.per_value = problem.walks / budget.walks
-        self.per_jacobian = (problem.param.size + 1) * budget.jacobian_walks / budget.walks
+        self.per_jacobian = problem.param.jacobian_evaluations() * budget.jacobian_walks / budget.walks
         self.stop = threading.Event()
 
     def __call__(self, label, x):
@@ -1640,9 +1743,15 @@ def phase_moves(param, x):
     return ["one lobe"] + ["other lobes"] * (len(phases) - 1), xs
 
 
-@eqx.filter_jit
 def _levelled_losses(problem, xs):
-    return jax.vmap(problem.levelled_loss)(xs)
+    """:meth:`~WeightedLeastSquares.levelled_loss` at each row of ``xs``, ``(C,)``: one evaluation each, by the
+    objective's own compiled program."""
+    return jnp.stack([_levelled(problem, problem.estimate(x).f) for x in np.asarray(xs)])
+
+
+@eqx.filter_jit
+def _levelled(problem, f):
+    return problem.levelled(problem.scale * f)
 
 
 def refine_phase(refined, refiner, say):
@@ -1664,7 +1773,7 @@ def refine_phase(refined, refiner, say):
             continue
         names, xs = moves
         losses = np.asarray(_levelled_losses(r.problem, jnp.concatenate([r.x[None], xs])), float)
-        for name, loss, x in zip(names, losses[1:], xs):
+        for name, loss, x in zip(names, losses[1:], np.asarray(xs)):
             ratio = loss / losses[0]
             if np.isfinite(ratio) and ratio < 1.0 and ratio < best.get(name, (np.inf,))[0]:
                 best[name] = (ratio, r, x)

@@ -629,7 +629,7 @@ def _nee(med, lay, z, w, beta, wo, rate_o, inv_mu_o, sig_o, mis=None):
 
 
 def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref=None, mis=False, interface=None,
-              top_prob=None, thin_after=THIN_AFTER):
+              top_prob=None, thin_after=THIN_AFTER, first_walk=0):
     """All walks of one incidence: per-walk connection sums ``(W, J, 3)`` and energy tallies ``(W, 3)``.
 
     Returns ``(acc, escaped, into_base, unfinished, shadowed)``. The later
@@ -644,11 +644,12 @@ def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref
 
     With a top ``interface`` (:class:`~jaxcos.Interface`; docs/interface.md)
     the walk is :func:`_walk_rough`'s, with ``top_prob`` (:func:`boundary_probability`);
-    ``mis`` is then ignored.
+    ``mis`` is then ignored. ``first_walk``: the index of the first walk
+    (these are walks ``first_walk .. first_walk + walks - 1`` of ``seed``'s).
     """
     if interface is not None:
         return _walk_rough(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref, interface,
-                           boundary_probability(med) if top_prob is None else top_prob, thin_after)
+                           boundary_probability(med) if top_prob is None else top_prob, thin_after, first_walk)
     dtype = wi.dtype
     n_out = wo.shape[0]
     mu_o = jnp.maximum(wo[:, 2], _MIN_MU)
@@ -674,7 +675,7 @@ def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref
         # their top bit set, which the walks' never reach), so the walks are those of mis=False. The
         # offsets use a step number the walks never reach either.
         seed_b = seed ^ jnp.array([0x80000000, 0], jnp.uint32)
-        offset = _uniforms(seed_b, jnp.uint32(0xFFFFFFFF), walks, 1, dtype)[:, 0]
+        offset = _uniforms(seed_b, jnp.uint32(0xFFFFFFFF), walks, 1, dtype, first_walk)[:, 0]
         offset = jnp.minimum(jnp.floor(offset * n_out).astype(jnp.int32), n_out - 1)
         # 1 / the mixture density that drew the incoming direction (0: the mixture did not draw it)
         state.update(inv_pdf=jnp.zeros(walks, dtype))
@@ -685,8 +686,8 @@ def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref
         inv_sig_b = 1.0 / (P.sggx_sigma(wo, sampler.m[0], sampler.alpha_p[0]) * n_out)  # (J,)
 
     def step(s, i, first):
-        n = s["z"].shape[0]  # the walks first .. first + n - 1
-        u = _uniforms(seed, i, n, 6, dtype, first)
+        n = s["z"].shape[0]  # the walks first .. first + n - 1 of this call
+        u = _uniforms(seed, i, n, 6, dtype, first + first_walk)
         sphere = P.uniform_sphere(u[:, 4], u[:, 5])
         z, k, beta, base, escaped, into_base = _flight(med, lambertian, s["z"], s["k"], s["w"], s["beta"], u[:, 0], u[:, 1])
         lay = med.take(k)
@@ -714,7 +715,8 @@ def _walk_one(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref
             # strategies cover the same scattering orders.
             j = (_chunk(offset, first, n) + i) % n_out  # the same slot as after the scan
             b = _backward_connection(med, lambertian, lay, lay if ref is None else ref_k, q_k, z, k, s["w"], beta,
-                                     wo[j], _uniforms(seed_b, i, n, 4, dtype, first), n_out, rate_o[j], inv_mu_o[j],
+                                     wo[j], _uniforms(seed_b, i, n, 4, dtype, first + first_walk), n_out, rate_o[j],
+                                     inv_mu_o[j],
                                      sig_o[j], ref_k)
             keep = i < bounces - 1
             if lambertian:
@@ -772,7 +774,7 @@ def _nee_inside(med, lay, z, w, beta, v, inv_vz, sig_v, scale):
 
 
 def _walk_rough(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, ref, interface, top_prob,
-                thin_after=THIN_AFTER):
+                thin_after=THIN_AFTER, first_walk=0):
     """:func:`_walk_one` under a rough dielectric top interface (docs/model.md section 3a, docs/interface.md).
 
     * The walk starts along ``u``, the refraction of ``wi`` through a visible
@@ -809,12 +811,12 @@ def _walk_rough(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, r
     total_t = jnp.sum(med.t)
     lambertian = base_albedo is not None
     seed_x = seed ^ jnp.array([0x40000000, 0], jnp.uint32)  # the interface's stream
-    u_e = _uniforms(seed_x, jnp.uint32(0xFFFFFFFF), walks, 2, dtype)
+    u_e = _uniforms(seed_x, jnp.uint32(0xFFFFFFFF), walks, 2, dtype, first_walk)
     u_in, w_t, w_r, lost = I.enter(wi, eta, alpha, u_e[:, 0], u_e[:, 1])
 
     def exits(step):
         """Directions ``v`` ``(W, J, 3)`` inside towards every ``wo``, their brackets, ``1 / v_z`` and extinctions."""
-        ux = _uniforms(seed_x, step, walks, 2 * n_out, dtype)
+        ux = _uniforms(seed_x, step, walks, 2 * n_out, dtype, first_walk)
         v, bracket = I.leave(wo[None], eta, alpha, ux[:, :n_out], ux[:, n_out:])
         return v, bracket, 1.0 / jnp.maximum(v[..., 2], _MIN_MU), _sigma_layers(med, v)
 
@@ -843,7 +845,7 @@ def _walk_rough(med, base_albedo, q, wi, wo, seed, walks, bounces, skip_first, r
     def step(s, i, first):
         n = s["z"].shape[0]  # the walks first .. first + n - 1
         chunk = lambda a: _chunk(a, first, n)
-        u = _uniforms(seed, i, n, 6, dtype, first)
+        u = _uniforms(seed, i, n, 6, dtype, first + first_walk)
         sphere = P.uniform_sphere(u[:, 4], u[:, 5])
         z, k, beta, base, _, into_base, top = _flight(med, lambertian, s["z"], s["k"], s["w"], s["beta"], u[:, 0],
                                                       u[:, 1], top_prob, top_prob)
@@ -968,7 +970,7 @@ class Estimate(eqx.Module):
 @eqx.filter_jit
 def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNCES, single_scattering="exact",
              lobe_probs=None, incidence_batch=None, sampling=None, connection="nee", boundary_prob=None,
-             thin_after=THIN_AFTER):
+             thin_after=THIN_AFTER, first=0):
     """Estimate the BSDF of ``material`` for a :class:`Query`.
 
     Args:
@@ -987,7 +989,7 @@ def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNC
         incidence_batch: how many incidence directions are walked together
             (vectorised); the others follow in sequence. By default all at
             once, the fastest for one evaluation; derivatives through many
-            tangents at once run faster with 1 (the fit's Jacobian does so).
+            tangents at once (``jax.jacfwd``) run faster with 1.
             The numbers are the same either way, up to float rounding.
         sampling: a fixed material whose lobes draw the scattering directions
             (detached sampling: its parameters are not differentiated, and
@@ -1027,6 +1029,13 @@ def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNC
             same walks draw the same numbers. ``None``: every walk makes
             every step (the estimator before 2026-12-02, kept as the
             reference of ``jaxcos bench accuracy``).
+        first: the index of the first walk: the estimate is that of walks
+            ``first .. first + walks - 1`` of each incidence under ``key``
+            (a walk's random numbers depend on its index, not on how many
+            walks there are), so that a large budget can be evaluated in
+            chunks by one compiled program (an integer array is not static:
+            every chunk shares the program). Chunks of thinned walks thin
+            within the chunk.
 
     A ``material`` with a top :class:`~jaxcos.Interface` (docs/model.md section
     3a, docs/interface.md) adds the interface's reflection ``f_s`` exactly
@@ -1057,7 +1066,7 @@ def simulate(material, query, key, *, walks=DEFAULT_WALKS, bounces=DEFAULT_BOUNC
         top_prob = (boundary_probability(med) if boundary_prob is None
                     else jax.lax.stop_gradient(jnp.asarray(boundary_prob, med.t.dtype)))
     walk = lambda wi, wo, k: _walk_one(med, material.base_albedo, q, wi, wo, k, walks, bounces, exact, ref,
-                                       connection == "mis", interface, top_prob, thin_after)
+                                       connection == "mis", interface, top_prob, thin_after, first)
     if incidence_batch is None or incidence_batch >= query.wi.shape[0]:
         acc, escaped, into_base, unfinished, shadowed = jax.vmap(walk)(query.wi, query.wo, seeds)
     else:
