@@ -129,7 +129,7 @@ FINE_STREAM = 4
 """The check of the finer refinement (:func:`refine_finer`)."""
 FINE_FACTOR = 4
 """The selected start is refined once more with this many times the fit's walks under the same key,
-connected by MIS where there are platelets (:func:`finer_problem`, :func:`refine_finer`), and kept where its
+connected by MIS under narrow platelets (:func:`finer_problem`, :func:`refine_finer`), and kept where its
 check is better. At the fit's own walks the fixed-key objective is too rough to tell apart materials along a
 shallow valley or near a narrow lobe: on seed 2's sets 0-7 of the recovery benchmark the fit recovered 5 of 8
 with it and 1 of 8 without, on the same data (docs/method.md, "The search")."""
@@ -1859,19 +1859,29 @@ def objective_mc_share(check, walks):
     return check.chi2_mc * (check.walks / walks) / max(check.material_chi2, 1e-30)
 
 
-def finer_problem(problem):
-    """The objective of the finer refinement: ``problem`` at :data:`FINE_FACTOR` times the walks, connected by MIS.
+MIS_ALPHA = 0.1
+"""The finer refinement connects by MIS where the selected start's platelets are narrower than this
+(``alpha_p`` below it; :func:`finer_problem`). At the objective of a set's own data and 4096 walks, MIS
+divided the Monte Carlo variance by 1.8-19 where ``alpha_p`` was 0.006-0.023 (seven random sets), by 1.2-1.7
+where it was 0.08 on two of three materials, and by 1.02-1.05 from 0.13 up (dewy1, matte1, matte2), where it
+costs 1.3-1.5 times the time (benchmarks/RESULTS.md, decision records)."""
+
+
+def finer_problem(problem, x):
+    """The objective of the finer refinement from ``x``: ``problem`` at :data:`FINE_FACTOR` times the walks.
 
     The same key (the first of the walks are ``problem``'s) and the same
     Jacobian walks; every walk makes every step (``thin_after=None``).
-    Where the material has platelets and no top interface the connection
-    becomes ``"mis"`` (:func:`~jaxcos.simulate`): the objectives
-    that are mostly their own noise are those of narrow, tilted platelet
-    lobes, whose variance sits in paths that meet the lobe more than once
-    (benchmarks/RESULTS.md, "Where the fit's noise is worst"), which the
-    MIS connection's second strategy draws.
+    Where the material at ``x`` has platelets narrower than :data:`MIS_ALPHA`
+    and no top interface the connection becomes ``"mis"``
+    (:func:`~jaxcos.simulate`): the objectives that are mostly their own
+    noise are those of narrow, tilted platelet lobes, whose variance sits in
+    paths that meet the lobe more than once (benchmarks/RESULTS.md, "Where
+    the fit's noise is worst"), which the MIS connection's second strategy
+    draws. Under broader lobes it costs more than it removes.
     """
-    mis = "alpha_p" in problem.param.names and not problem.param.interface
+    mis = ("alpha_p" in problem.param.names and not problem.param.interface
+           and float(problem.param.to_material(x).layers[0].alpha_p) < MIS_ALPHA)
     return dataclasses.replace(problem, walks=FINE_FACTOR * problem.walks,
                                connection="mis" if mis else problem.connection, thin_after=None)
 
@@ -1893,7 +1903,7 @@ def refine_finer(refined, selection, problem, meas, method, budget, key, say):
             f"(below {FINE_SHARE})")
         return refined, selection, stage
     start = refined[selection.best]
-    finer = Refiner(finer_problem(problem), meas, method, budget)
+    finer = Refiner(finer_problem(problem, start.x), meas, method, budget)
     say(f"refining start {start.label} again at {finer.problem.walks} walks ({method}, {PASSES} passes, "
         f"{finer.problem.connection.upper()} connection) and checking it")
     r = finer(f"{start.label}, {FINE_FACTOR}x walks", start.x)
