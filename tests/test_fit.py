@@ -307,9 +307,53 @@ def test_levenberg_marquardt_stops_when_the_loss_stops_falling(loss_rtol, patien
         np.testing.assert_allclose(sol.value, [1.0, 1.0], atol=1e-4)
 
 
+@pytest.mark.parametrize("stall, steps", [(3, 2 + 3), (5, 2 + 5), (None, 40)])
+def test_levenberg_marquardt_stops_after_stall_rejections(stall, steps):
+    """The Jacobian is right at the start and of the wrong sign everywhere else: the first step (the start,
+    accepted unseen) and the second (downhill) are accepted, every later one goes uphill, and the solve ends
+    ``stall`` rejections later; without the rule it runs to ``max_steps`` (where the region, shrunk to
+    rounding, lets some through)."""
+    x0 = jnp.array([1.0, -2.0])
+
+    @jax.custom_jvp
+    def residuals(x):
+        return x + 0.5 * x ** 3
+
+    @residuals.defjvp
+    def residuals_jvp(primals, tangents):
+        (x,), (dx,) = primals, tangents
+        sign = jnp.where(jnp.all(x == x0), 1.0, -1.0)
+        return residuals(x), sign * (1.0 + 1.5 * x ** 2) * dx
+
+    solver = LevenbergMarquardt(rtol=0.0, atol=0.0, loss_rtol=0.0, stall=stall)
+    sol = optx.least_squares(lambda x, _: residuals(x), solver, x0, max_steps=40, throw=False)
+    assert int(sol.stats["num_steps"]) == steps
+    if stall is not None:
+        assert int(sol.state.num_accepted_steps) == 2
+
+
+@pytest.mark.parametrize("stall", [1, 3])
+def test_levenberg_marquardt_finds_its_region_before_it_stalls(stall):
+    """Rejections before any step beyond the start is accepted only shrink the region: the stall rule waits.
+    Every step of the wrong-sign Jacobian from the start is rejected, and the solve runs on."""
+
+    @jax.custom_jvp
+    def residuals(x):
+        return x
+
+    @residuals.defjvp
+    def residuals_jvp(primals, tangents):
+        (x,), (dx,) = primals, tangents
+        return x, -dx
+
+    solver = LevenbergMarquardt(rtol=0.0, atol=0.0, loss_rtol=0.0, stall=stall)
+    sol = optx.least_squares(lambda x, _: residuals(x), solver, jnp.array([1.0, -2.0]), max_steps=12, throw=False)
+    assert int(sol.stats["num_steps"]) == 12
+
+
 def test_levenberg_marquardt_agrees_with_optimistix_on_a_smooth_problem():
-    ours = optx.least_squares(_rosenbrock, LevenbergMarquardt(rtol=1e-8, atol=1e-8), jnp.array([-1.2, 1.0]),
-                              max_steps=200)
+    ours = optx.least_squares(_rosenbrock, LevenbergMarquardt(rtol=1e-8, atol=1e-8, stall=None),
+                              jnp.array([-1.2, 1.0]), max_steps=200)
     theirs = optx.least_squares(_rosenbrock, optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8), jnp.array([-1.2, 1.0]),
                                 max_steps=200)
     np.testing.assert_allclose(ours.value, theirs.value, atol=1e-5)
@@ -336,7 +380,7 @@ def test_levenberg_marquardt_linearises_only_at_accepted_steps():
 
     for steps in (5, 10, 20):
         jacobians.clear()
-        ours = run(LevenbergMarquardt(rtol=0.0, atol=0.0, loss_rtol=0.0), steps)
+        ours = run(LevenbergMarquardt(rtol=0.0, atol=0.0, loss_rtol=0.0, stall=None), steps)
         accepted = int(ours.state.num_accepted_steps)
         assert 0 < accepted < steps  # both kinds of step occur
         assert len(jacobians) == accepted  # one Jacobian per accepted step (its rule runs once for all tangents)
@@ -892,3 +936,61 @@ def test_fitted_thickness_under_an_interface_holds_the_boundary_probability():
     np.testing.assert_array_equal(np.asarray(problem.estimate(x).f), np.asarray(held.f))
     with pytest.raises(InputError, match="mis"):
         make_problem(meas, param, key=jax.random.key(3), connection="mis")
+
+
+def _checked(reduced, se=0.05, dof=300):
+    from jaxcos.inference._fit import CheckResult
+
+    return CheckResult(walks=16, batches=4, bounces=8, chi2=reduced * dof, chi2_mc=0.0, material_chi2=reduced * dof,
+                       material_chi2_se=se * dof, l2=1.0, rmse=1.0, reduced_chi2=reduced, reduced_chi2_se=se)
+
+
+def test_refine_phase_refines_the_best_move_of_each_kind_and_keeps_the_others(monkeypatch):
+    """Of the starts' best moves, one per kind (the lowest ratio) is refined; the others are handed on."""
+    import jaxcos.inference._fit as F
+
+    param = parameterization("two_lobe")
+    x = param.from_material(jaxcos.Material(layers=(jaxcos.Layer(**F._DEFAULT),)))
+    n_moves = len(F.phase_moves(param, x)[0])
+    problem = type("P", (), {"param": param})()
+    starts = [F.RefinedStart(label=name, x=x, loss=1.0, steps=0, evaluations=0.0, problem=problem, jacobian=None)
+              for name in ("a", "b")]
+    # start a: its one-lobe move at 0.9 of its loss, its best other move (the 3rd) at 0.5;
+    # start b: one lobe at 0.6 (the best one-lobe move), other moves no better than b itself
+    ratios = {"a": [0.9] + [1.2, 1.1, 0.5] + [1.3] * (n_moves - 4), "b": [0.6] + [1.0] * (n_moves - 1)}
+    calls = iter(ratios[s.label] for s in starts)
+    monkeypatch.setattr(F, "_levelled_losses", lambda problem, xs: jnp.asarray([1.0] + next(calls)))
+    refined = []
+    moved, pending = F.refine_phase(starts, lambda label, x: refined.append(label) or label, lambda m: None)
+    assert refined == ["b, one lobe", "a, other lobes"] == moved
+    assert [(m.start.label, m.name) for m in pending] == [("a", "one lobe")]
+    assert pending[0].ratio == pytest.approx(0.9)
+
+
+@pytest.mark.parametrize("reduced, se, runs", [(1.1, 0.05, False), (2.05, 0.05, False), (2.5, 0.05, True),
+                                               (40.0, 5.0, True)])
+def test_other_phase_moves_are_refined_only_where_the_fit_misses(monkeypatch, reduced, se, runs):
+    """refine_missed refines and checks the pending moves only where the selected check, less twice its SE,
+    is above MISSED_CHI2; their checks join the selection, and the best bound wins."""
+    import jaxcos.inference._fit as F
+
+    problem = type("P", (), {})()
+    start = F.RefinedStart(label="s", x=jnp.zeros(2), loss=1.0, steps=0, evaluations=0.0, problem=problem,
+                           jacobian=None)
+    selection = F.Selection(checks=(_checked(reduced, se),), pooled=(np.zeros(3),))
+    pending = [F.PhaseMove(0.8, start, "one lobe", np.ones(2)), F.PhaseMove(0.9, start, "other lobes", np.ones(2))]
+    refined_labels = []
+
+    def refiner(label, x):
+        refined_labels.append(label)
+        return dataclasses.replace(start, label=label)
+
+    better = _checked(1.0)
+    monkeypatch.setattr(F, "_check", lambda prob, meas, x, key, walks: (better, np.ones(3)))
+    refined, out = F.refine_missed([start], selection, pending, refiner, None, None, 16, lambda m: None)
+    if runs:
+        assert refined_labels == ["s, one lobe", "s, other lobes"]
+        assert [r.label for r in refined] == ["s", "s, one lobe", "s, other lobes"]
+        assert len(out.checks) == 3 and out.best == 1
+    else:
+        assert refined_labels == [] and refined == [start] and out is selection

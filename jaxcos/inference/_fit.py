@@ -627,6 +627,10 @@ class LevenbergMarquardtState(eqx.Module):
     small_steps: jnp.ndarray
 
 
+STALL = 5
+""":class:`LevenbergMarquardt` stops after this many consecutive rejected steps."""
+
+
 def _quiet(**kwargs):
     """The default ``verbose`` of :class:`LevenbergMarquardt`: says nothing."""
 
@@ -657,9 +661,18 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
     creeps: the damping grows after a few rejected steps, and each accepted
     step lowers the loss far less than the data can tell apart. So this
     solver also stops after ``patience`` consecutive accepted steps that each
-    lowered the loss by less than ``loss_rtol`` of it, and after a rejected
+    lowered the loss by less than ``loss_rtol`` of it, after a rejected
     step already within the tolerance on ``y`` (a smaller region would
-    propose a smaller one).
+    propose a smaller one), and after ``stall`` consecutive rejected steps
+    once it has accepted a step beyond the start. Each rejection shrinks the
+    trust region fourfold (``optx.ClassicalTrustRegion``'s
+    ``low_constant``), so after ``stall`` of them the step is ``4**-stall``
+    of the one the linear model proposed: on the fit's objectives, where
+    the few-walk Jacobian's slope is not the objective's, the step that then
+    passed lowered the loss by 0-1%, less than the checks' standard error
+    (benchmarks/RESULTS.md, decision records, "The fit's objective"). At the
+    start of a solve a run of rejections only finds the region's size, and
+    is not cut. ``None``: no such stop.
     """
 
     rtol: float
@@ -670,13 +683,14 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
     verbose: object
     loss_rtol: float
     patience: int
+    stall: int | None
 
-    def __init__(self, rtol, atol, loss_rtol=2e-4, patience=2):
+    def __init__(self, rtol, atol, loss_rtol=2e-4, patience=2, stall=STALL):
         self.rtol, self.atol, self.norm = rtol, atol, optx.max_norm
         self.descent = optx.DampedNewtonDescent()
         self.search = optx.ClassicalTrustRegion()
         self.verbose = _quiet
-        self.loss_rtol, self.patience = loss_rtol, patience
+        self.loss_rtol, self.patience, self.stall = loss_rtol, patience, stall
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         # The Jacobian is kept as a matrix; nothing of fn is traced here.
@@ -728,13 +742,15 @@ class LevenbergMarquardt(optx.AbstractLeastSquaresSolver):
         small = jnp.where(accept & (state.num_accepted_steps >= 1),
                           jnp.where(before - after < self.loss_rtol * before, state.small_steps + 1, 0),
                           state.small_steps)
+        since = jnp.where(accept, 0, state.num_steps_since_acceptance + 1)
+        if self.stall is not None:  # once a step has been accepted beyond the start
+            terminate = terminate | ((since >= self.stall) & (state.num_accepted_steps >= 2))
         new = LevenbergMarquardtState(
             first_step=jnp.array(False), y_eval=y + y_descent, search_state=search_state, f_info=f_info, aux=aux,
             descent_state=descent_state, terminate=terminate | (small >= self.patience),
             result=optx.RESULTS.where(found == optx.RESULTS.successful, result, found),
             num_steps=state.num_steps + 1, num_accepted_steps=state.num_accepted_steps + jnp.where(accept, 1, 0),
-            num_steps_since_acceptance=jnp.where(accept, 0, state.num_steps_since_acceptance + 1),
-            small_steps=small)
+            num_steps_since_acceptance=since, small_steps=small)
         return y, new
 
     def step(self, fn, y, args, options, state, tags):
@@ -1754,35 +1770,99 @@ def _levelled(problem, f):
     return problem.levelled(problem.scale * f)
 
 
+class PhaseMove(NamedTuple):
+    """A refined start's best :func:`phase_moves` move of one kind, not yet refined.
+
+    Attributes:
+        ratio: its levelled loss over the start's own, on the start's objective (below 1).
+        start: the :class:`RefinedStart` it moves.
+        name: ``"one lobe"`` or ``"other lobes"``.
+        x: the moved point (unbounded coordinates).
+    """
+
+    ratio: float
+    start: RefinedStart
+    name: str
+    x: np.ndarray
+
+
+def best_phase_moves(refined):
+    """Each refined start's best move of each kind that lowers its levelled loss, as :class:`PhaseMove`, best
+    ratio first.
+
+    Each start is evaluated on its own objective at its :func:`phase_moves`,
+    after the best level per channel (:meth:`~WeightedLeastSquares.levelled_loss`).
+    """
+    moves = []
+    for r in refined:
+        planned = phase_moves(r.problem.param, r.x)
+        if planned is None:
+            continue
+        names, xs = planned
+        losses = np.asarray(_levelled_losses(r.problem, jnp.concatenate([r.x[None], xs])), float)
+        best = {}
+        for name, loss, x in zip(names, losses[1:], np.asarray(xs)):
+            ratio = loss / losses[0]
+            if np.isfinite(ratio) and ratio < 1.0 and (name not in best or ratio < best[name].ratio):
+                best[name] = PhaseMove(float(ratio), r, name, x)
+        moves += best.values()
+    return sorted(moves, key=lambda m: m.ratio)
+
+
+def _refine_moves(moves, refiner, say):
+    out = []
+    for m in moves:
+        say(f"refining start {m.start.label} with "
+            f"{'one diffuser lobe' if m.name == 'one lobe' else 'other diffuser lobes'}, where it fits better")
+        out.append(refiner(f"{m.start.label}, {m.name}", m.x))
+    return out
+
+
 def refine_phase(refined, refiner, say):
     """The refine stage's last moves: refined starts with another diffuser phase function, refined where better.
 
-    Each refined start is evaluated on its own objective at its
-    :func:`phase_moves`. Of each kind of move (one lobe, other lobes), the one
-    that lowers a start's loss after the best level per channel
-    (:meth:`~WeightedLeastSquares.levelled_loss`) most, relative to its own,
-    is refined from there too (:data:`PASSES` passes) where it lowers it at all, and joins the
-    refined starts for :func:`select` to judge (a loss under another start's
-    weights says little about the check). Returns the new
-    :class:`RefinedStart` of each, one lobe first.
+    Of each kind of move (one lobe, other lobes), the one of
+    :func:`best_phase_moves` that lowers its start's levelled loss most,
+    relative to the start's own, is refined (:data:`PASSES` passes), and
+    joins the refined starts for :func:`select` to judge (a loss under
+    another start's weights says little about the check). Returns the new
+    :class:`RefinedStart` of each, and the other starts' best moves, not
+    refined (:func:`refine_missed`).
     """
-    best = {}
-    for r in refined:
-        moves = phase_moves(r.problem.param, r.x)
-        if moves is None:
-            continue
-        names, xs = moves
-        losses = np.asarray(_levelled_losses(r.problem, jnp.concatenate([r.x[None], xs])), float)
-        for name, loss, x in zip(names, losses[1:], np.asarray(xs)):
-            ratio = loss / losses[0]
-            if np.isfinite(ratio) and ratio < 1.0 and ratio < best.get(name, (np.inf,))[0]:
-                best[name] = (ratio, r, x)
-    out = []
-    for name, (_, start, x) in best.items():
-        say(f"refining start {start.label} with {'one diffuser lobe' if name == 'one lobe' else 'other diffuser lobes'}"
-            ", where it fits better")
-        out.append(refiner(f"{start.label}, {name}", x))
-    return out
+    moves = best_phase_moves(refined)
+    chosen = {}
+    for m in moves:
+        chosen.setdefault(m.name, m)
+    kept = sorted(chosen.values(), key=lambda m: m.name != "one lobe")
+    return _refine_moves(kept, refiner, say), [m for m in moves if all(m is not c for c in kept)]
+
+
+MISSED_CHI2 = 2.0
+"""Where the selected start's material misses data with a noise model by more than this (its reduced
+chi-square under independent keys, less twice its SE), :func:`refine_missed` refines the other starts' phase
+moves too."""
+
+
+def refine_missed(refined, selection, pending, refiner, meas, key, walks, say):
+    """The other starts' phase moves, refined and checked, where the selected start misses the data.
+
+    Only for data with a noise model (a reduced chi-square), where the
+    selected start's :attr:`CheckResult.reduced_chi2` less twice its SE is
+    above :data:`MISSED_CHI2`: its material does not explain the data, and
+    the fit's outcome then turns on which start's phase move was refined
+    (benchmarks/RESULTS.md, decision records, "The fit's objective").
+    ``pending``: the :class:`PhaseMove` not refined by :func:`refine_phase`.
+    Each is refined and checked like the others (:func:`select`'s keys,
+    ``key``), and joins them. Returns ``(refined, selection)``.
+    """
+    c = selection.checks[selection.best]
+    if not pending or c.reduced_chi2 is None or c.reduced_chi2 - 2.0 * c.reduced_chi2_se <= MISSED_CHI2:
+        return refined, selection
+    say(f"the selected start misses the data (reduced chi-square {c.reduced_chi2:.3g}): refining the other "
+        f"starts' phase moves too")
+    more = _refine_moves(pending, refiner, say)
+    checks, pooled = zip(*[_check(r.problem, meas, r.x, key, walks) for r in more])
+    return refined + more, Selection(checks=selection.checks + checks, pooled=selection.pooled + pooled)
 
 
 def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, say):
@@ -1793,7 +1873,7 @@ def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, sa
     Then the best one-lobe point and the best other phase function of them
     are refined too, where they fit better (:func:`refine_phase`). Returns
     the :class:`RefinedStart` of each, the screened ones first, the moved ones
-    last.
+    last, and the other :class:`PhaseMove` not refined.
     """
     screen_problem = dataclasses.replace(problem, walks=budget.screen_walks, bounces=budget.screen_bounces,
                                          jacobian_walks=None, thin_after=None)
@@ -1807,7 +1887,8 @@ def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, sa
         say(f"refining the best {len(screened.order)} screened start{'s' * (len(screened.order) > 1)} "
             f"({method}, {PASSES} passes)")
         refined = [refiner(str(i), screened.ends[i]) for i in screened.order] + [u.result() for u in unscreened]
-        return refined + refine_phase(refined, refiner, say)
+        moved, pending = refine_phase(refined, refiner, say)
+        return refined + moved, pending
     finally:
         refiner.stop.set()  # an interrupted fit leaves its background starts after the pass they are in
 
@@ -2002,7 +2083,9 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
             :data:`CHECK_FACTOR` times the walks under independent keys, and
             the best check is the fit (:func:`select`), after a last step on
             its check's residuals where that step checks better (LM only;
-            :func:`polish`).
+            :func:`polish`). Where the data have a noise model and the best
+            check misses them, the other starts' best phase moves are
+            refined and checked too (:func:`refine_missed`).
         fit_t, fit_phi: also fit the optical thickness ``t`` (else fixed at ``t``)
             or the tilt azimuth ``phi_p`` (else 0).
         start: a :class:`Material` to start from instead of the multi-start
@@ -2050,15 +2133,20 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
 
     if start is not None:
         say(f"refining the given start ({method}, {PASSES} passes)")
-        fixed, refined = (), [refiner("given", x_default)]
+        fixed, refined, pending = (), [refiner("given", x_default)], []
     else:
         plan = plan_starts(meas, param, problem.connection, starts=starts, t=t, rng=np.random.default_rng(seed))
         fixed = plan.fixed
-        refined = screen_and_refine(plan, problem, refiner, key, budget=budget, refine=refine, method=method, say=say)
+        refined, pending = screen_and_refine(plan, problem, refiner, key, budget=budget, refine=refine,
+                                             method=method, say=say)
 
     say(f"checking {len(refined)} refined start{'s' * (len(refined) > 1)} at {budget.check_walks} walks "
         f"in {CHECK_BATCHES} batches under independent keys")
-    selection = select(refined, meas, jax.random.fold_in(key, CHECK_STREAM), budget.check_walks)
+    check_key = jax.random.fold_in(key, CHECK_STREAM)
+    selection = select(refined, meas, check_key, budget.check_walks)
+    # the refine stage's refiner has been stopped (screen_and_refine): a fresh one, of the same objective
+    refined, selection = refine_missed(refined, selection, pending, Refiner(problem, meas, method, budget), meas,
+                                       check_key, budget.check_walks, say)
     stage = None
     if finer and method == "lm":
         refined, selection, stage = refine_finer(refined, selection, problem, meas, method, budget,
