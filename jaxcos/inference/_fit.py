@@ -293,13 +293,23 @@ class Parameterization(eqx.Module):
         expand = lambda f: np.concatenate([np.full(RANGES[n].size, f(n)) for n in self.names])
         return expand(lambda n: DIFFERENCED.get(n, FORWARD_STEP)), expand(lambda n: n in DIFFERENCED)
 
+    def moves(self):
+        """``(seeds, h, central)``: the moves of the fit's Jacobian (:meth:`Problem.jacobian`).
+
+        ``seeds`` ``(K, size)`` from :meth:`colouring`; ``h`` ``(K,)`` the step
+        of each move and ``central`` ``(K,)`` whether it is taken both ways,
+        those of the first entry of ``x`` the move reads (:meth:`difference_steps`).
+        """
+        seeds, column, _ = self.colouring()
+        steps, central = self.difference_steps()
+        first = [int(np.flatnonzero(column == k)[0]) for k in range(len(seeds))]
+        return seeds, steps[first].astype(np.float32), central[first]
+
     def jacobian_evaluations(self):
         """The evaluations of the objective a Jacobian takes (:meth:`Problem.jacobian`): the point itself, two per
         centrally differenced move, one per other move."""
-        _, column, _ = self.colouring()
-        _, central = self.difference_steps()
-        first = [int(np.flatnonzero(column == k)[0]) for k in range(int(column.max()) + 1)]
-        return 1 + sum(2 if central[j] else 1 for j in first)
+        _, h, central = self.moves()
+        return 1 + len(h) + int(np.sum(central))
 
     def bounds(self):
         """``(low, high)``: the fit's bounds of each :meth:`labels` entry (``jaxcos.model.RANGES``), the support of
@@ -454,14 +464,12 @@ class Problem(WeightedLeastSquares):
         components of an RGB parameter changes each channel by its own
         component's column. The two-lobe model's 12 columns cost 13
         evaluations at ``jacobian_walks`` (benchmarks/RESULTS.md, decision
-        records, "The fit's Jacobian by differences").
+        records, "One compiled program per budget, the solver's loop on the host and the Jacobian by
+        differences").
         """
         sub = dataclasses.replace(self, walks=_jacobian_walks(self))
-        seeds, column, channel = self.param.colouring()
-        steps, central = self.param.difference_steps()
-        first = [int(np.flatnonzero(column == k)[0]) for k in range(len(seeds))]
-        h = np.array([steps[j] for j in first], np.float32)
-        back = np.array([central[j] for j in first])
+        _, column, channel = self.param.colouring()
+        seeds, h, back = self.param.moves()
         x = np.asarray(x)
         moves = (seeds * h[:, None]).astype(x.dtype)
         points = np.concatenate([x[None], x + moves, x - moves[back]])
@@ -471,6 +479,7 @@ class Problem(WeightedLeastSquares):
 
 CHUNK_WALKS = FIT_WALKS
 """The most walks of one evaluation of a :class:`Problem` (:meth:`Problem.estimate`)."""
+
 
 @eqx.filter_jit
 def _estimate(problem, x, first):
