@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import os
+import time
 
 import jax
 import jax.numpy as jnp
@@ -745,6 +746,61 @@ def test_background_refinement_hands_over_its_result_and_its_error():
     assert _in_background(lambda a, b: a + b, 2, 3).result(timeout=60) == 5
     with pytest.raises(InputError, match="from the thread"):
         _in_background(fail).result(timeout=60)
+
+
+def test_evaluations_two_at_a_time_are_those_of_one_at_a_time(monkeypatch):
+    """A Jacobian, a check's batches and a large budget's chunks, evaluated two at a time, are the evaluations
+    one at a time to the last bit and in their order (a swapped or shared result would not be)."""
+    import jaxcos.inference._fit as fitting
+
+    monkeypatch.setattr(fitting, "CHUNK_WALKS", 16)
+    data = _synthetic(TRUTH, START)
+    param = parameterization("single_lobe", template=START)
+    x = param.from_material(TRUTH) + 0.05
+    problem = make_problem(data, param, key=jax.random.key(SEED), walks=32, bounces=16, reference=START)
+
+    def numbers():
+        jac, y = problem.jacobian(x)
+        batches = fitting.batch_residuals(problem, data, x, jax.random.key(1), 48, 3)[0]
+        big = dataclasses.replace(problem, walks=64).estimate(x)
+        return [np.asarray(a) for a in (jac, y, batches, big.f, big.stderr)]
+
+    together = numbers()
+    monkeypatch.setattr(fitting, "concurrently", lambda fn, items: [fn(item) for item in items])
+    for a, b in zip(together, numbers()):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_evaluations_two_at_a_time_stop_at_an_error():
+    """An evaluation's error reaches the caller, and the evaluations not yet started are not started."""
+    import threading
+
+    from jaxcos.inference._fit import EVALUATION_THREADS, concurrently
+
+    started, finished, release = [], [], threading.Event()
+
+    def evaluate(i):
+        started.append(i)
+        if i == 1:
+            raise InputError("item 1")
+        if i > 1:
+            release.wait(60)
+        finished.append(i)
+        return i
+
+    assert concurrently(lambda i: 2 * i, range(7)) == [0, 2, 4, 6, 8, 10, 12]
+    with pytest.raises(InputError, match="item 1"):
+        concurrently(evaluate, range(20))
+    release.set()
+    # Item 0 runs alone, then item 1 and at most one more per thread, each held until the release; were the
+    # others not cancelled, the threads would go on to them once released.
+    held = set(started) - {0, 1}
+    for _ in range(100):
+        if held <= set(finished):
+            break
+        time.sleep(0.05)
+    time.sleep(0.2)
+    assert set(started) <= set(range(2 + EVALUATION_THREADS))
 
 
 def test_unknown_variant_is_a_clear_error(tmp_path, capsys):
