@@ -1899,8 +1899,7 @@ def refine_missed(refined, selection, pending, refiner, meas, key, walks, say):
     say(f"the selected start misses the data (reduced chi-square {c.reduced_chi2:.3g}): refining the other "
         f"starts' phase moves too")
     more = _refine_moves(pending, refiner, say)
-    checks, pooled = zip(*[_check(r.problem, meas, r.x, key, walks) for r in more])
-    return refined + more, Selection(checks=selection.checks + checks, pooled=selection.pooled + pooled)
+    return refined + more, selection.extended(select(more, meas, key, walks))
 
 
 def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, say):
@@ -1947,6 +1946,10 @@ class Selection:
     def best(self):
         """The index of the selected start among the refined ones: the lowest :attr:`CheckResult.bound`."""
         return int(np.argmin([c.bound for c in self.checks]))
+
+    def extended(self, other):
+        """This selection with the checks of ``other`` (of starts refined later) after its own."""
+        return Selection(checks=self.checks + other.checks, pooled=self.pooled + other.pooled)
 
 
 def select(refined, meas, key, walks):
@@ -2026,8 +2029,7 @@ def refine_finer(refined, selection, problem, meas, method, budget, key, say):
     say(f"refining start {start.label} again at {finer.problem.walks} walks ({method}, {PASSES} passes, "
         f"{finer.problem.connection.upper()} connection) and checking it")
     r = finer(f"{start.label}, {FINE_FACTOR}x walks", start.x)
-    c, pooled = _check(r.problem, meas, r.x, key, budget.check_walks)
-    return refined + [r], Selection(checks=selection.checks + (c,), pooled=selection.pooled + (pooled,)), stage
+    return refined + [r], selection.extended(select([r], meas, key, budget.check_walks)), stage
 
 
 @dataclasses.dataclass(frozen=True)
