@@ -119,6 +119,31 @@ def test_release_saturated_moves_only_coordinates_at_a_bound():
     assert fitting.release_saturated(param, same) is same
 
 
+def test_at_bounds_names_the_saturated_entries_and_the_report_says_what_they_mean():
+    """The entries release_saturated would move are those at_bounds names, each with the bound it sits at; the
+    fit's report names them and says what an albedo at 1 means."""
+    import types
+
+    import jaxcos.inference._fit as fitting
+    from jaxcos.model._ranges import G_MAX
+    from jaxcos.report._fit import _bound_lines
+
+    param = parameterization("two_lobe", fit_t=True, interface=True)
+    labels = param.labels()
+    x = np.zeros(param.size)
+    x[labels.index("albedo_d[0]")], x[labels.index("g2")], x[labels.index("t")] = 16.0, -6.0, 40.0
+    x[labels.index("eta")] = -12.0
+    x[labels.index("albedo_p[0]")] = 6.0  # 0.9975: near the bound, not at it
+    assert param.at_bounds(jnp.asarray(x)) == [("albedo_d[0]", 1.0), ("g2", -G_MAX), ("eta", 1.01)]
+    moved = np.flatnonzero(np.asarray(fitting.release_saturated(param, jnp.asarray(x))) != x)
+    assert [labels[i] for i in moved] == ["albedo_d[0]", "g2", "eta"]
+    assert param.at_bounds(jnp.zeros(param.size)) == []
+    text = " ".join(_bound_lines(types.SimpleNamespace(param=param, x=jnp.asarray(x))))
+    assert "`albedo_d[0]` (red) at 1, `g2` at" in text and "`eta` at 1.01" in text
+    assert "more light than a non-absorbing medium" in text and "closer to index-matched" in text
+    assert _bound_lines(types.SimpleNamespace(param=param, x=jnp.zeros(param.size))) == []
+
+
 @pytest.mark.slow
 def test_a_start_at_a_bound_is_released(monkeypatch):
     """From a start whose albedos have run to 1 (where the logistic map's slope vanishes), the fit still
@@ -735,6 +760,23 @@ def test_each_pass_takes_its_lobe_probabilities_where_it_starts(monkeypatch):
         np.testing.assert_allclose(second[0].lobe_probs, lobe_probabilities(result.param.to_material(first[2])),
                                    rtol=4 * np.finfo(np.float32).eps)
         assert not np.allclose(first[0].lobe_probs, second[0].lobe_probs)
+
+
+def test_screen_leaves_out_an_end_that_is_refined_unscreened_anyway(monkeypatch):
+    """A start whose screen rejected every step ends where it began: where that is a point refined unscreened,
+    it is not refined a second time."""
+    import jaxcos.inference._fit as fitting
+
+    pool = jnp.arange(12.0).reshape(3, 4)
+    # constant batch residuals: end s has pair chi-square 5 (s + 1)^2 and SE 0, so the ends rank 0, 1, 2
+    resid = jnp.stack([jnp.full((fitting.CHECK_BATCHES, 5), s + 1.0) for s in range(3)])
+    monkeypatch.setattr(fitting, "_screen", lambda problem, xs, keys: (xs, resid))
+    key = jax.random.key(SEED)
+    assert fitting.screen(None, pool, key, refine=1).order == [0]
+    assert fitting.screen(None, pool, key, refine=1, refined_anyway=(pool[0],)).order == []
+    assert fitting.screen(None, pool, key, refine=3, refined_anyway=(pool[1],)).order == [0, 2]
+    # a point merely near an end is another start
+    assert fitting.screen(None, pool, key, refine=1, refined_anyway=(pool[0] + 1e-6,)).order == [0]
 
 
 def test_background_refinement_hands_over_its_result_and_its_error():

@@ -194,14 +194,21 @@ def release_saturated(param, x):
     Released, a coordinate whose optimum is the bound runs back to it. The
     ``exp`` map (``t``) is left alone.
     """
-    k = np.concatenate([np.full(RANGES[n].size, _STEEPNESS.get(RANGES[n].fit_map, 0.0)) for n in param.names])
-    x_np = np.asarray(x, float)
-    edge, back = float(_unit_to_x(1.0 - SATURATED)), float(_unit_to_x(1.0 - RELEASED))
-    saturated = (k > 0) & (np.abs(k * x_np) > edge)
+    k, saturated = _saturated(param, x)
     if not saturated.any():
         return x
+    x_np = np.asarray(x, float)
+    back = float(_unit_to_x(1.0 - RELEASED))
     released = np.where(saturated, np.sign(x_np) * back / np.where(k > 0, k, 1.0), x_np)
     return jnp.asarray(released, jnp.result_type(x))
+
+
+def _saturated(param, x):
+    """``(k, saturated)`` per entry of ``x``: the steepness of its map (0 where unbounded) and whether it is
+    saturated (:data:`SATURATED`)."""
+    k = np.concatenate([np.full(RANGES[n].size, _STEEPNESS.get(RANGES[n].fit_map, 0.0)) for n in param.names])
+    edge = float(_unit_to_x(1.0 - SATURATED))
+    return k, (k > 0) & (np.abs(k * np.asarray(x, float)) > edge)
 
 
 def fixed_values(variant):
@@ -310,6 +317,20 @@ class Parameterization(eqx.Module):
         centrally differenced move, one per other move."""
         _, h, central = self.moves()
         return 1 + len(h) + int(np.sum(central))
+
+    def at_bounds(self, x):
+        """``[(label, bound)]``: the entries of ``x`` at a bound of their fit range (saturated,
+        :data:`SATURATED`), with the value of that bound.
+
+        There the value is the bound, not an estimate: the data would take it
+        further, or are indifferent beyond it (an albedo at 1: more light than
+        a non-absorbing medium returns; ``w_g`` at 1: one diffuser lobe).
+        """
+        _, saturated = _saturated(self, x)
+        low, high = self.bounds()
+        x_np = np.asarray(x, float)
+        return [(label, float(high[i] if x_np[i] > 0 else low[i]))
+                for i, label in enumerate(self.labels()) if saturated[i]]
 
     def bounds(self):
         """``(low, high)``: the fit's bounds of each :meth:`labels` entry (``jaxcos.model.RANGES``), the support of
@@ -1729,25 +1750,33 @@ def plan_starts(meas, param, connection, *, starts, t, rng):
 
 @dataclasses.dataclass(frozen=True)
 class Screened:
-    """The screen's outcome: every start's end, its rank (lower is better) and the best ``refine`` of them."""
+    """The screen's outcome: every start's end, its rank (lower is better) and the best ``refine`` of them
+    (:func:`screen`)."""
 
     ends: jnp.ndarray
     ranks: list
     order: list
 
 
-def screen(problem, pool, key, *, refine):
+def screen(problem, pool, key, *, refine, refined_anyway=()):
     """The screen stage: :data:`SCREEN_STEPS` Levenberg-Marquardt steps from each start of ``pool``, ranked.
 
     ``problem``: the screen's objective (its small budget). The ends are ranked by
     the pair estimate of their chi-square over :data:`CHECK_BATCHES` independent
     batches (keys from ``key``) plus twice its SE (:func:`_pair_chi2`): the screen's
     own loss at so few walks would also rank the materials by how noisy they are to
-    simulate. An end with a non-finite residual ranks last.
+    simulate. An end with a non-finite residual ranks last. Of the best ``refine``
+    ends, those equal to a point of ``refined_anyway`` (the points refined
+    unscreened) are left out: a start whose screen rejected every step ends
+    where it began, and refining it again would repeat that refinement to the
+    last bit.
     """
     ends, resid = _screen(problem, pool, _batch_keys(key, CHECK_BATCHES))
     ranks = [_upper_bound(*_pair_chi2(r)) if np.all(np.isfinite(r)) else np.inf for r in np.asarray(resid, float)]
-    return Screened(ends=ends, ranks=ranks, order=[int(i) for i in np.argsort(ranks)[:refine]])
+    ends_np = np.asarray(ends)
+    order = [int(i) for i in np.argsort(ranks)[:refine]
+             if not any(np.array_equal(ends_np[i], np.asarray(x)) for x in refined_anyway)]
+    return Screened(ends=ends, ranks=ranks, order=order)
 
 
 PHASE_GRID = dict(g1=(0.2, 0.4, 0.6, 0.8), g2=(-0.6, -0.3, 0.0), w_g=(0.6, 0.8, 0.95))
@@ -1920,9 +1949,13 @@ def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, sa
     unscreened = [_in_background(refiner, f"{name}, unscreened", x)
                   for name, x in zip(plan.unscreened, plan.x_unscreened)]
     try:
-        screened = screen(screen_problem, plan.pool, jax.random.fold_in(key, SCREEN_STREAM), refine=refine)
-        say(f"refining the best {len(screened.order)} screened start{'s' * (len(screened.order) > 1)} "
-            f"({method}, {PASSES} passes)")
+        screened = screen(screen_problem, plan.pool, jax.random.fold_in(key, SCREEN_STREAM), refine=refine,
+                          refined_anyway=plan.x_unscreened)
+        if screened.order:
+            say(f"refining the best {len(screened.order)} screened start{'s' * (len(screened.order) > 1)} "
+                f"({method}, {PASSES} passes)")
+        else:
+            say("the screen's best end is a start refined unscreened: no screened start refined besides")
         refined = [refiner(str(i), screened.ends[i]) for i in screened.order] + [u.result() for u in unscreened]
         moved, pending = refine_phase(refined, refiner, say)
         return refined + moved, pending

@@ -221,6 +221,37 @@ def _gloss_lines(meas, material):
             "models by AIC and BIC."]
 
 
+_CHANNELS = {"[0]": " (red)", "[1]": " (green)", "[2]": " (blue)"}
+_AT_BOUND = {
+    ("albedo_d", "high"): "a diffuser albedo at 1 says the body wants more light than a non-absorbing medium over "
+                          "the black base returns",
+    ("albedo_p", "high"): "a platelet albedo at 1 says the platelets' light wants to be brighter than lossless",
+    ("c_d", "high"): "`c_d` at 1 leaves no platelets",
+    ("c_d", "low"): "`c_d` at 0 leaves no diffusers",
+    ("w_g", "high"): "`w_g` at 1 is one diffuser lobe",
+    ("eta", "low"): "`eta` at 1.01 asks for a surface closer to index-matched than the range allows (`jaxcos ablate "
+                    "--interface` compares the two models)",
+}
+
+
+def _bound_lines(result):
+    """The parameters that ended at a bound of their fit range (:meth:`Parameterization.at_bounds`), or nothing."""
+    at = result.param.at_bounds(result.x)
+    if not at:
+        return []
+    low = dict(zip(result.param.labels(), result.param.bounds()[0]))
+    named, meanings = [], []
+    for label, bound in at:
+        channel = next((c for k, c in _CHANNELS.items() if label.endswith(k)), "")
+        named.append(f"`{label}`{channel} at {bound:g}")
+        meaning = _AT_BOUND.get((label.split("[")[0], "low" if bound == low[label] else "high"))
+        if meaning is not None and meaning not in meanings:
+            meanings.append(meaning)
+    text = (f"**At a bound of the fit's range: {', '.join(named)}.** There the value is the bound, not an estimate: "
+            "the data ask for at least (or at most) that much")
+    return ["", text + ("; " + "; ".join(meanings) if meanings else "") + "."]
+
+
 def _weighting(meas):
     """One sentence: how the points were weighed (std columns, a ``--noise`` model, or none: plain L2)."""
     if meas.std is None:
@@ -281,6 +312,7 @@ def fit_report(result, meas):
     else:
         lines += [f"| `interface.eta` (top interface, docs/model.md section 3a) | {_fmt(float(top.eta))} |",
                   f"| `interface.alpha_s` | {_fmt(float(top.alpha_s))} |"]
+    lines += _bound_lines(result)
     lines += _gloss_lines(meas, result.material)
     lines += [
         "",
