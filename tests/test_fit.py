@@ -980,11 +980,17 @@ def test_finer_refinement_only_where_the_objective_is_rough(monkeypatch):
 
 def test_fit_with_interface_writes_it(tmp_path):
     """`fit(interface=True)` returns a material with an interface; params.json carries it, the report names it."""
+    import jaxcos.inference._fit as fitting
+
     meas = _tiny()
     result = fit(meas, variant="single_lobe", walks=16, bounces=8, jacobian_walks=8, starts=1, interface=True,
                  final_step=False, finer=False)
     assert result.material.interface is not None and result.record.finer is None
     assert result.record.fitted[-2:] == ("eta", "alpha_s")
+    # under an interface the refinements thin by default (INTERFACE_THIN_AFTER); index-matched fits do not
+    assert result.problem.thin_after == fitting.INTERFACE_THIN_AFTER
+    assert fit(meas, variant="single_lobe", walks=16, bounces=8, jacobian_walks=8, starts=1, final_step=False,
+               finer=False).problem.thin_after is None
     jaxcos.write_fit(result, meas, tmp_path / "out")
     data = json.loads((tmp_path / "out" / "params.json").read_text())
     assert set(data["interface"]) == {"eta", "alpha_s"}
