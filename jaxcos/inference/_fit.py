@@ -2017,8 +2017,8 @@ def objective_mc_share(check, walks):
 INTERFACE_THIN_AFTER = 32
 """Under a top interface the refinements' objective makes its later steps with fewer walks from this step on
 (:func:`fit`'s ``thin_after``): a walk through the interface costs about twice an index-matched one; so thinned,
-the fit of Clarins 105 took 76 s instead of 130 s for the same material, and on six random sets under an
-interface the fits recovered as many as before in about 60% of the time (from step 16: one more set, but
+the fit of Clarins 105 took 76-97 s instead of 130-150 s for the same material, and on six random sets under an
+interface the fits recovered as many as before in about 55% of the time (from step 16: one more set, but
 Clarins 105 weighted by ``--noise`` ended in another basin; benchmarks/RESULTS.md, decision records, "Fewer
 walks for the later steps")."""
 
