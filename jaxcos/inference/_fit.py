@@ -2160,7 +2160,8 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
             (:data:`PASSES` passes each), besides the default start as it is
             (the near-mirror start and :func:`highlight_start` where the
             highlight is narrow), refined in other threads while the screen runs
-            (:func:`screen_and_refine`); each is then checked with
+            (:func:`screen_and_refine`; a screened end that is one of those
+            points is not refined again, :func:`screen`); each is then checked with
             :data:`CHECK_FACTOR` times the walks under independent keys, and
             the best check is the fit (:func:`select`), after a last step on
             its check's residuals where that step checks better (LM only;

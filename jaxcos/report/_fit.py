@@ -225,7 +225,8 @@ _CHANNELS = {"[0]": " (red)", "[1]": " (green)", "[2]": " (blue)"}
 _AT_BOUND = {
     ("albedo_d", "high"): "a diffuser albedo at 1 says the body wants more light than a non-absorbing medium over "
                           "the black base returns",
-    ("albedo_p", "high"): "a platelet albedo at 1 says the platelets' light wants to be brighter than lossless",
+    ("albedo_p", "high"): "a platelet albedo at 1 says the platelets reflect all they receive and the data would "
+                          "take more",
     ("c_d", "high"): "`c_d` at 1 leaves no platelets",
     ("c_d", "low"): "`c_d` at 0 leaves no diffusers",
     ("w_g", "high"): "`w_g` at 1 is one diffuser lobe",
