@@ -127,6 +127,8 @@ POLISH_STREAM = 3
 """The check of the Gauss-Newton step (:func:`polish`)."""
 FINE_STREAM = 4
 """The check of the finer refinement (:func:`refine_finer`)."""
+BOUNDARY_STREAM = 5
+"""The evaluations that choose the boundary probability under a top interface (:func:`quietest_boundary_probability`)."""
 FINE_FACTOR = 4
 """The selected start is refined once more with this many times the fit's walks under the same key,
 connected by MIS under narrow platelets (:func:`finer_problem`, :func:`refine_finer`), and kept where its
@@ -1186,6 +1188,9 @@ def random_starts(param, n, rng, tilt=None):
 def with_mc_error(problem, meas, x):
     """``problem`` with lobe probabilities and Monte Carlo error taken at ``x``, both then held fixed.
 
+    Under a top interface the boundary probability is taken at ``x`` too
+    (:func:`quietest_boundary_probability`).
+
     The weights become ``1 / sqrt(std^2 + s_mc^2)``: with a fixed key the
     Monte Carlo error is an offset as large as a noise, and counting it as
     information would inflate the chi-square. ``s_mc = r |model|``, with ``r``
@@ -1195,10 +1200,46 @@ def with_mc_error(problem, meas, x):
     weights would bias the fit. Files without std columns stay unweighted.
     """
     problem = dataclasses.replace(problem, lobe_probs=_lobe_probabilities_at(problem.param, x))
+    if problem.param.interface:
+        problem = dataclasses.replace(problem, boundary_prob=quietest_boundary_probability(problem, x))
     if meas.std is None:
         return problem
     return dataclasses.replace(problem, sigma=_mc_sigma(problem.estimate(x), jnp.asarray(meas.std, problem.sigma.dtype),
                                                         problem.scale))
+
+
+BOUNDARY_FACTORS = (1 / 3, 2 / 3, 1.0, 1.6, 2.7)
+"""The boundary probabilities :func:`quietest_boundary_probability` tries, as multiples of
+:func:`~jaxcos.model.boundary_probability`'s."""
+
+
+def quietest_boundary_probability(problem, x):
+    """The boundary probability of :data:`BOUNDARY_FACTORS` times the default at ``x`` whose objective is quietest.
+
+    Under a top interface a flight up ends at the top with a fixed probability
+    ``p`` (:func:`~jaxcos.model.boundary_probability`; any ``p`` in ``(0, 1)``
+    is unbiased). The best ``p`` moves with the material: a weak interface
+    (``eta`` near 1) reflects little and wants a smaller one, walks whose
+    vertices stay near the top a larger one, and the objective's Monte Carlo
+    variance changed by up to five times either way (benchmarks/RESULTS.md,
+    decision records, "Where an interface fit's noise is"). Each candidate is
+    evaluated once at ``x`` under a key of its own stream (so that the
+    objective's walks do not depend on the choice); the one of least Monte
+    Carlo chi-square ``sum (scale se / sigma)^2`` is held fixed, like the
+    lobe probabilities.
+    """
+    p0 = float(boundary_probability(problem.param.to_material(x)))
+    candidates = [min(max(p0 * f, 0.01), 0.95) for f in BOUNDARY_FACTORS]
+    pilot = dataclasses.replace(problem, key=jax.random.fold_in(problem.key, BOUNDARY_STREAM))
+    noise = concurrently(lambda p: float(_mc_chi2(pilot, dataclasses.replace(
+        pilot, boundary_prob=jnp.asarray(p, problem.sigma.dtype)).estimate(x))), candidates)
+    return jnp.asarray(candidates[int(np.argmin(noise))], problem.sigma.dtype)
+
+
+@eqx.filter_jit
+def _mc_chi2(problem, est):
+    """The Monte Carlo chi-square ``sum (scale se / sigma)^2`` of an estimate under ``problem``'s weights."""
+    return jnp.sum((problem.scale * est.stderr / problem.sigma) ** 2)
 
 
 @eqx.filter_jit
@@ -1698,6 +1739,8 @@ class Refiner:
                 raise _Abandoned
             x = release_saturated(self.problem.param, x)
             prob = with_mc_error(self.problem, self.meas, x)
+            if prob.param.interface:  # the boundary probability's candidates (quietest_boundary_probability)
+                evaluations += len(BOUNDARY_FACTORS) * self.per_value
             if self.method == "lm":
                 x, loss, n, accepted, jac = solve_lm(prob, x, jacobian=True)
                 evaluations += n * self.per_value + accepted * self.per_jacobian
