@@ -64,6 +64,20 @@ LEVELS = np.linspace(0.05, 0.95, 19)
 """Nominal levels of the coverage curve (central intervals)."""
 
 
+def _place(draws, true):
+    """``(P,)``: the fraction of ``draws`` (``(S, P)``) below each truth, ties counted half (the truth's PIT)."""
+    return np.mean(draws < true, axis=0) + 0.5 * np.mean(draws == true, axis=0)
+
+
+def _holds(q, truth):
+    """Whether the intervals of percentiles ``q`` (2.5, 16, 50, 84, 97.5) hold ``truth``, and its offset ``z``.
+
+    ``z``: median minus truth over the 68% half-width.
+    """
+    return dict(in68=bool(q[1] <= truth <= q[3]), in95=bool(q[0] <= truth <= q[4]),
+                z=float((q[2] - truth) / max(0.5 * (q[3] - q[1]), 1e-300)))
+
+
 def run_set(args, index):
     started = time.perf_counter()
     meas, truth, variant, product, rng, mc_ratio = make_set(args.seed, index, args.sim_walks, args.sim_bounces,
@@ -86,26 +100,21 @@ def run_set(args, index):
     shift = rng.multivariate_normal(np.zeros(param.size), post.mc_cov, size=post.chain.samples.shape[0],
                                     method="eigh")
     draws = np.clip(post.chain.samples + shift, low, high)
-    pit = np.mean(draws < true, axis=0) + 0.5 * np.mean(draws == true, axis=0)
+    pit = _place(draws, true)
     # the chain's own draws, without the Monte Carlo shift: the intervals of a posterior that leaves it out
     chain = np.clip(post.chain.samples, low, high)
     chain_q = np.percentile(chain, [2.5, 16, 50, 84, 97.5], axis=0)
-    chain_pit = np.mean(chain < true, axis=0) + 0.5 * np.mean(chain == true, axis=0)
+    chain_pit = _place(chain, true)
     rows = {}
     for i, name in enumerate(post.labels):
         s = post.summary[name]
-        c = chain_q[:, i]
         rows[name] = dict(truth=float(true[i]), median=s["median"], p16=s["p16"], p84=s["p84"],
                           p2_5=s["p2.5"], p97_5=s["p97.5"], pit=float(pit[i]),
-                          in68=bool(s["p16"] <= true[i] <= s["p84"]),
-                          in95=bool(s["p2.5"] <= true[i] <= s["p97.5"]),
+                          **_holds([s[k] for k in ("p2.5", "p16", "median", "p84", "p97.5")], true[i]),
                           identified=bool(s["p97.5"] - s["p2.5"] < 0.5 * (high[i] - low[i])),
                           unresolved=name in post.record.unresolved,
-                          z=float((s["median"] - true[i]) / max(0.5 * (s["p84"] - s["p16"]), 1e-300)),
                           mc_sd=s["mc_sd"], laplace_sd=s["laplace_sd"],
-                          chain_only=dict(pit=float(chain_pit[i]), in68=bool(c[1] <= true[i] <= c[3]),
-                                          in95=bool(c[0] <= true[i] <= c[4]),
-                                          z=float((c[2] - true[i]) / max(0.5 * (c[3] - c[1]), 1e-300))))
+                          chain_only=dict(pit=float(chain_pit[i]), **_holds(chain_q[:, i], true[i])))
     record = dict(
         set=index, seed=args.seed, fit_seed=args.fit_seed, variant=variant, product=product, no_std=args.no_std,
         interface=args.interface, fit_start="default" if args.from_default else "truth",
@@ -195,18 +204,20 @@ def write_reports(args, records):
                 f"[{s68[0]:.3f}, {s68[1]:.3f}] | {c95:.3f}{flag(c95, b95)} | [{b95[0]:.3f}, {b95[1]:.3f}] | "
                 f"[{s95[0]:.3f}, {s95[1]:.3f}] | {len(ident)} | {i68} | {i95} |")
 
-    lines.append(row("all", pairs))
     variants = {r["set"]: r["variant"] for r in sets}
-    if len(set(variants.values())) > 1:  # a posterior's width depends on the variant: each on its own
-        for v in sorted(set(variants.values())):
-            lines.append(row(f"all, {v.replace('_', '-')} sets", [x for x in pairs if variants[x[0]] == v]))
+
+    def with_variants(label, variant_label, chosen):
+        lines.append(row(label, chosen))
+        if len(set(variants.values())) > 1:  # a posterior's width depends on the variant: each on its own
+            for v in sorted(set(variants.values())):
+                lines.append(row(variant_label.format(v.replace("_", "-")), [x for x in chosen if variants[x[0]] == v]))
+
+    with_variants("all", "all, {} sets", pairs)
     for g in groups:
         lines.append(row(f"`{g}`", [x for x in pairs if _group(x[1]) == g]))
     chain_only = [(s, n, dict(p["chain_only"], identified=p["identified"])) for s, n, p in pairs if "chain_only" in p]
     if chain_only:  # the same chains' intervals without the Monte Carlo shift (sets run since it was recorded)
-        lines.append(row("all, chain only (no Monte Carlo shift)", chain_only))
-        for v in sorted(set(variants.values())):
-            lines.append(row(f"{v.replace('_', '-')} sets, chain only", [x for x in chain_only if variants[x[0]] == v]))
+        with_variants("all, chain only (no Monte Carlo shift)", "{} sets, chain only", chain_only)
     lines += ["", "| set | variant | product | points | converged | chain in tau | min ESS | time s | held at 68% | "
               "held at 95% | not identified | farthest (median - truth over the 68% half-width) |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]
