@@ -31,7 +31,10 @@ draws below it, the chain's draws plus their Monte Carlo shift, as the
 intervals are made), whether the 68% and 95% intervals hold it, and whether
 the data identify the parameter (its 95% interval narrower than half the prior).
 The same is recorded for the chain's draws alone (``chain_only``: the
-intervals without the Monte Carlo shift), a row of the table.
+intervals without the Monte Carlo shift), a row of the table, and for the
+quantities of the parameters that ``jaxcos uncertainty`` reports besides them
+(``derived``: the diffusers' mean cosine ``g_mean`` of a two-lobe set), a row
+each.
 A calibrated posterior holds the truth at each nominal level within the
 binomial band. Each set is appended to ``sets.jsonl`` as it finishes (a rerun
 into the same ``--out`` resumes); ``summary.md`` and ``coverage.png``
@@ -57,7 +60,7 @@ sys.path.insert(0, HERE)
 
 import jaxcos  # noqa: E402
 from jaxcos.inference._bench import machine_record  # noqa: E402
-from jaxcos.inference._posterior import HI_WALKS  # noqa: E402
+from jaxcos.inference._posterior import HI_WALKS, derived  # noqa: E402
 from bench_recovery import append_record, make_set, pending_sets  # noqa: E402
 
 LEVELS = np.linspace(0.05, 0.95, 19)
@@ -115,6 +118,15 @@ def run_set(args, index):
                           unresolved=name in post.record.unresolved,
                           mc_sd=s["mc_sd"], laplace_sd=s["laplace_sd"],
                           chain_only=dict(pit=float(chain_pit[i]), **_holds(chain_q[:, i], true[i])))
+    # quantities of the parameters (the diffusers' mean cosine of a two-lobe fit), over the same draws
+    true_derived, draws_derived = derived(post.labels, true), derived(post.labels, draws)
+    derived_rows = {}
+    for name, s in post.derived.items():
+        t = float(true_derived[name])
+        derived_rows[name] = dict(truth=t, median=s["median"], p16=s["p16"], p84=s["p84"], p2_5=s["p2.5"],
+                                  p97_5=s["p97.5"], pit=float(_place(draws_derived[name][:, None], np.array([t]))[0]),
+                                  **_holds([s[k] for k in ("p2.5", "p16", "median", "p84", "p97.5")], t),
+                                  identified=bool(s["p97.5"] - s["p2.5"] < 1.0))  # half of [-1, 1]
     record = dict(
         set=index, seed=args.seed, fit_seed=args.fit_seed, variant=variant, product=product, no_std=args.no_std,
         interface=args.interface, fit_start="default" if args.from_default else "truth",
@@ -122,7 +134,7 @@ def run_set(args, index):
         min_ess=float(np.min(post.chain.ess)), fit_time_s=round(fit_time, 1), posterior_time_s=round(post_time, 1),
         total_time_s=round(time.perf_counter() - started, 1), hi_walks=args.hi_walks,
         noise_relative=post.record.noise_relative, noise_absolute=post.record.noise_absolute,
-        chi2_high_budget_at_anchor=post.record.chi2_high_budget_at_anchor, parameters=rows,
+        chi2_high_budget_at_anchor=post.record.chi2_high_budget_at_anchor, parameters=rows, derived=derived_rows,
         load_average=[round(v, 2) for v in os.getloadavg()],
     )
     append_record(args.out, record)
@@ -215,6 +227,9 @@ def write_reports(args, records):
     with_variants("all", "all, {} sets", pairs)
     for g in groups:
         lines.append(row(f"`{g}`", [x for x in pairs if _group(x[1]) == g]))
+    derived_pairs = [(r["set"], name, p) for r in sets for name, p in r.get("derived", {}).items()]
+    for name in dict.fromkeys(n for _, n, _ in derived_pairs):  # sets run since it was recorded
+        lines.append(row(f"derived: `{name}`", [x for x in derived_pairs if x[1] == name]))
     chain_only = [(s, n, dict(p["chain_only"], identified=p["identified"])) for s, n, p in pairs if "chain_only" in p]
     if chain_only:  # the same chains' intervals without the Monte Carlo shift (sets run since it was recorded)
         with_variants("all, chain only (no Monte Carlo shift)", "{} sets, chain only", chain_only)

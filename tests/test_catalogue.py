@@ -18,6 +18,7 @@ import pytest
 
 import jaxcos
 from jaxcos.cli import main
+from jaxcos.cli._catalogue import uncertainty_row
 from jaxcos.cli._fit import fit_row
 from jaxcos.io._measurements import Measurements, save_measurements
 from jaxcos.report import FIT_FILES
@@ -303,3 +304,17 @@ def test_uncertainty_catalogue_options(inputs, tmp_path, capsys):
     assert main(["ablate", str(inputs[0]), "--out", str(tmp_path / "o"), "--workers", "2"]) == 2
     assert "--workers needs --catalogue" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_uncertainty_row_has_the_derived_quantities(tmp_path):
+    """A two-lobe posterior's ``derived`` quantities are columns of the catalogue like its parameters."""
+    row = dict(median=0.4, p16=0.38, p84=0.42)
+    doc = dict(parameters={"g1": row, "albedo_d[0]": row}, derived={"g_mean": dict(row, fit=0.41)},
+               record=dict(variant="two_lobe"), fit={})
+    (tmp_path / "posterior.json").write_text(json.dumps(doc))
+    got = uncertainty_row(str(tmp_path))
+    assert {"g1_median", "albedo_d[0]_p84", "g_mean_median", "g_mean_p16", "g_mean_p84"} <= set(got)
+    assert got["g_mean_p84"] == 0.42 and "g_mean_fit" not in got
+    del doc["derived"]  # a posterior written before derived quantities existed
+    (tmp_path / "posterior.json").write_text(json.dumps(doc))
+    assert not any(k.startswith("g_mean") for k in uncertainty_row(str(tmp_path)))

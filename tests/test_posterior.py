@@ -15,8 +15,9 @@ import jaxcos
 from jaxcos.cli import main
 from jaxcos.io._measurements import Measurements
 from jaxcos.inference._fit import parameterization
-from jaxcos.inference._posterior import (Linearisation, NoiseModel, PosteriorRecord, estimate_noise, laplace,
-                                        run_ensemble, sample, sensitivity, uncertainty, widen_steps)
+from jaxcos.inference._posterior import (Linearisation, NoiseModel, PosteriorRecord, derived, estimate_noise,
+                                        laplace, run_ensemble, sample, sensitivity, uncertainty, widen_steps)
+from jaxcos.model._phase import hg
 from jaxcos.report import write_uncertainty
 from jaxcos.report._posterior import _corner, _sensitivity_maps
 
@@ -227,6 +228,7 @@ def test_write_uncertainty(small_posterior, tmp_path):
     assert doc["record"]["prior"]["alpha_p"] == list(post.record.prior["alpha_p"])
     assert doc["record"]["chain_in_tau"] == post.record.chain_in_tau and not post.record.interface
     assert doc["record"]["noise"] == "file std columns" and doc["record"]["noise_relative"] is None
+    assert doc["derived"] == {} == post.derived  # one diffuser lobe: g1 is its mean cosine
     report = (out / "report.md").read_text()
     assert "autocorrelation" in report and "Laplace" in report
     with pytest.raises(jaxcos.InputError, match="exists"):
@@ -379,6 +381,23 @@ def test_report_says_when_the_chain_reaches_the_edge_of_the_linearisation():
     assert notes[0].startswith("`at_region`") and "linearised" in notes[0]
     assert notes[1].startswith("`at_prior`") and "prior" in notes[1]
     assert notes[2].startswith("`unresolved`") and "Monte Carlo noise" in notes[2]
+
+
+def test_mean_cosine_is_the_first_moment_of_the_diffuser_mixture():
+    """``g_mean`` against the mean of ``w . w'`` under the walk's own two-lobe phase function, integrated
+    numerically over the sphere (midpoint rule in ``cos``; the function is azimuthally symmetric)."""
+    labels = ["c_d", "g1", "g2", "w_g", "alpha_p"]
+    v = np.array([[0.5, 0.62, -0.35, 0.7, 0.1], [0.5, 0.05, 0.3, 0.2, 0.1], [0.5, 0.8, 0.8, 0.4, 0.1]])
+    n = 200000
+    mu = (np.arange(n) + 0.5) / n * 2.0 - 1.0
+    out = np.stack([mu * 0, np.sqrt(1 - mu ** 2), mu], axis=-1)
+    w = np.array([0.0, 0.0, 1.0])
+    for row, g_mean in zip(v, derived(labels, v)["g_mean"]):
+        _, g1, g2, wg, _ = row
+        f = wg * np.asarray(hg(w, out, g1)) + (1 - wg) * np.asarray(hg(w, out, g2))
+        moment = 2 * np.pi * np.sum(mu * f) * (2.0 / n)
+        assert abs(g_mean - moment) < 1e-4, (row, g_mean, moment)
+    assert derived(["c_d", "g1", "alpha_p"], v[:, :3]) == {}
 
 
 def test_report_says_when_the_two_lobes_overlap():

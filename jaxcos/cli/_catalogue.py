@@ -585,14 +585,15 @@ def _read_json(folder, name):
 
 
 def uncertainty_row(folder):
-    """A posterior's catalogue columns: the fit's statistics, the chain's, and each parameter's median and 68%."""
+    """A posterior's catalogue columns: the fit's statistics, the chain's, and the median and 68% of each parameter
+    and each derived quantity (``g_mean`` of a two-lobe fit)."""
     doc = _read_json(folder, "posterior.json")
     fit, record = doc.get("fit", {}), doc.get("record", {})
     row = dict(variant=record.get("variant"), n_points=record.get("n_points"), l2=fit.get("l2"), rmse=fit.get("rmse"),
                reduced_chi2=fit.get("reduced_chi2"), converged=record.get("converged"),
                chain_in_tau=record.get("chain_in_tau"), walkers=record.get("walkers"), steps=record.get("steps"),
                seed=record.get("seed"), time_s=record.get("time_s"))
-    for label, summary in doc.get("parameters", {}).items():
+    for label, summary in {**doc.get("parameters", {}), **doc.get("derived", {})}.items():
         row.update({f"{label}_{q}": summary.get(q) for q in ("median", "p16", "p84")})
     return row
 

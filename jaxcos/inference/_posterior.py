@@ -725,8 +725,33 @@ def monte_carlo_spread(problem, at, sens, *, key, replicas, progress):
     return np.atleast_2d(np.cov(shifts.T)) * walks / problem.walks
 
 
+def derived(labels, v):
+    """Quantities of the parameters ``v`` (``(..., P)``, columns as ``labels``) that the data may fix better than
+    the parameters themselves: a dict of name to ``(...)`` values, empty where none applies.
+
+    ``g_mean``, for a two-lobe material: the diffusers' mean cosine
+    ``w_g g1 + (1 - w_g) g2``, the first Legendre moment of their phase
+    function (a Henyey-Greenstein lobe's ``l``-th moment is ``g^l``). Two
+    mixtures of nearly the same first three moments scatter nearly alike,
+    so the data may fix the mean cosine better than how it is split between
+    the lobes (benchmarks/RESULTS.md, "Posterior").
+    """
+    if not {"g1", "g2", "w_g"} <= set(labels):
+        return {}
+    g1, g2, w = (np.asarray(v, float)[..., labels.index(n)] for n in ("g1", "g2", "w_g"))
+    return {"g_mean": w * g1 + (1.0 - w) * g2}
+
+
+def _percentiles(fit, samples):
+    """A summary row's fitted value and percentiles of ``samples`` (``(S,)``)."""
+    q = np.percentile(samples, [2.5, 16, 50, 84, 97.5])
+    return dict(fit=float(fit), median=float(q[2]), p16=float(q[1]), p84=float(q[3]),
+                **{"p2.5": float(q[0]), "p97.5": float(q[4])})
+
+
 def summarise(chain, mc_cov, labels, fit_values, lin, laplace_sd, low, high, *, rng):
-    """``(summary, correlation)``: the per-parameter table of :class:`Posterior` with the Monte Carlo error.
+    """``(summary, derived_summary, correlation)``: the per-parameter table of :class:`Posterior` with the Monte
+    Carlo error, and the same percentiles of the :func:`derived` quantities.
 
     The chain samples the posterior of one fixed-key estimate of the model; a
     different key would shift it by a draw of the Monte Carlo error mapped
@@ -735,18 +760,18 @@ def summarise(chain, mc_cov, labels, fit_values, lin, laplace_sd, low, high, *, 
     """
     shift = rng.multivariate_normal(np.zeros(len(labels)), mc_cov, size=chain.samples.shape[0], method="eigh")
     samples = np.clip(chain.samples + shift, low, high)
-    q = np.percentile(samples, [2.5, 16, 50, 84, 97.5], axis=0)
+    at_fit = derived(labels, fit_values)
+    derived_summary = {name: _percentiles(at_fit[name], d) for name, d in derived(labels, samples).items()}
     q_noise = np.percentile(chain.samples, [16, 84], axis=0)
     summary = {}
     for i, name in enumerate(labels):
-        summary[name] = dict(fit=float(fit_values[i]), anchor=float(lin.anchor[i]), median=float(q[2, i]),
-                             p16=float(q[1, i]), p84=float(q[3, i]),
-                             **{"p2.5": float(q[0, i]), "p97.5": float(q[4, i])},
+        row = _percentiles(fit_values[i], samples[:, i])
+        summary[name] = dict(fit=row.pop("fit"), anchor=float(lin.anchor[i]), **row,
                              p16_noise_only=float(q_noise[0, i]), p84_noise_only=float(q_noise[1, i]),
                              mc_sd=float(np.sqrt(mc_cov[i, i])), laplace_sd=float(laplace_sd[i]),
                              tau=float(chain.tau[i]), ess=float(chain.ess[i]))
     corr = np.corrcoef(samples.T) if samples.shape[0] > 1 else np.eye(len(labels))
-    return summary, corr
+    return summary, derived_summary, corr
 
 
 def check_model(target, problem, chain, lin, *, key, checks, rng, progress):
@@ -886,6 +911,9 @@ class Posterior:
         mc_cov: ``(P, P)`` the covariance of the parameters' Monte Carlo shift
             (:func:`monte_carlo_spread`); the intervals are percentiles of the
             chain's draws plus such shifts.
+        derived: per :func:`derived` quantity (``g_mean`` for a two-lobe
+            material) its ``fit``, ``median``, ``p16``, ``p84``, ``p2.5`` and
+            ``p97.5`` over the same draws; empty where none applies.
     """
 
     labels: list
@@ -900,6 +928,7 @@ class Posterior:
     noise: np.ndarray
     mc_cov: np.ndarray
     noise_model: NoiseModel | None = None
+    derived: dict = dataclasses.field(default_factory=dict)
 
     @property
     def converged(self):
@@ -974,7 +1003,8 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
                            max_steps=max_steps, progress=say)
     mc_cov = monte_carlo_spread(problem, lin.anchor, sens, key=check_key, replicas=replicas, progress=say)
     rng = np.random.default_rng(seed + 1)
-    summary, corr = summarise(chain, mc_cov, param.labels(), v0, lin, laplace_sd, low, high, rng=rng)
+    summary, derived_summary, corr = summarise(chain, mc_cov, param.labels(), v0, lin, laplace_sd, low, high,
+                                               rng=rng)
     predictive, model_error = check_model(target, problem, chain, lin, key=check_key, checks=checks, rng=rng,
                                           progress=say)
 
@@ -983,7 +1013,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
                      seconds=time.perf_counter() - t0)
     return Posterior(labels=param.labels(), summary=summary, correlation=corr, chain=chain, laplace_cov=cov,
                      sensitivity=sens, record=record, predictive=predictive, fit=fit_result, noise=lin.noise,
-                     mc_cov=mc_cov, noise_model=noise_model)
+                     mc_cov=mc_cov, noise_model=noise_model, derived=derived_summary)
 
 
 def _record(meas, param, chain, lin, at_fit, *, region, step, noise_model, hi_walks, bounces, seed, model_error,

@@ -126,6 +126,14 @@ def uncertainty_report(post, meas):
         lines.append(f"| `{name}` | {s['fit']:.4g} | {s['median']:.4g} | [{s['p16']:.4g}, {s['p84']:.4g}] | "
                      f"[{s['p2.5']:.4g}, {s['p97.5']:.4g}] | [{s['p16_noise_only']:.4g}, {s['p84_noise_only']:.4g}] | "
                      f"{s['mc_sd']:.3g} | {s['laplace_sd']:.3g} | {s['tau']:.0f} | {s['ess']:.0f} |")
+    if "g_mean" in post.derived:
+        s = post.derived["g_mean"]
+        lines += ["", f"The diffusers' mean cosine `g_mean` = `w_g g1 + (1 - w_g) g2` (fit {s['fit']:.4g}): median "
+                  f"{s['median']:.4g}, 68% [{s['p16']:.4g}, {s['p84']:.4g}], 95% [{s['p2.5']:.4g}, {s['p97.5']:.4g}], "
+                  "over the same draws. Mixtures of nearly the same first moments scatter nearly alike, so the "
+                  "data may fix the mean cosine better than how it is split between the lobes: the intervals of "
+                  "`g1`, `g2` and `w_g` describe the split around the anchor, and another split that fits as well "
+                  "may lie outside them."]
     notes = _laplace_notes(post)
     lines += ["", "## Laplace cross-check", "",
               "The Laplace spread is `(J^T J - N)^-1` at the anchor, with `J` the slopes of the high-budget "
@@ -242,6 +250,7 @@ def write_uncertainty(post, meas, out_dir, *, force=False):
     c = post.chain
     data = dict(
         parameters=post.summary,
+        derived=post.derived,
         correlation=dict(labels=post.labels, matrix=post.correlation),
         laplace=dict(labels=post.labels, covariance=post.laplace_cov),
         diagnostics=dict(tau=dict(zip(post.labels, c.tau)), ess=dict(zip(post.labels, c.ess)), steps=c.steps,
