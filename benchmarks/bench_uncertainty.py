@@ -68,7 +68,8 @@ LEVELS = np.linspace(0.05, 0.95, 19)
 
 
 def _place(draws, true):
-    """``(P,)``: the fraction of ``draws`` (``(S, P)``) below each truth, ties counted half (the truth's PIT)."""
+    """``(P,)``: the fraction of ``draws`` (``(S, P)``) below each truth, ties counted half (the truth's PIT); a
+    scalar for ``(S,)`` draws of one quantity."""
     return np.mean(draws < true, axis=0) + 0.5 * np.mean(draws == true, axis=0)
 
 
@@ -79,6 +80,12 @@ def _holds(q, truth):
     """
     return dict(in68=bool(q[1] <= truth <= q[3]), in95=bool(q[0] <= truth <= q[4]),
                 z=float((q[2] - truth) / max(0.5 * (q[3] - q[1]), 1e-300)))
+
+
+def _interval(s, truth, pit):
+    """A record's row for one quantity: its summary ``s``'s percentiles, the truth, its PIT, and :func:`_holds`."""
+    return dict(truth=float(truth), median=s["median"], p16=s["p16"], p84=s["p84"], p2_5=s["p2.5"], p97_5=s["p97.5"],
+                pit=float(pit), **_holds([s[k] for k in ("p2.5", "p16", "median", "p84", "p97.5")], truth))
 
 
 def run_set(args, index):
@@ -111,9 +118,7 @@ def run_set(args, index):
     rows = {}
     for i, name in enumerate(post.labels):
         s = post.summary[name]
-        rows[name] = dict(truth=float(true[i]), median=s["median"], p16=s["p16"], p84=s["p84"],
-                          p2_5=s["p2.5"], p97_5=s["p97.5"], pit=float(pit[i]),
-                          **_holds([s[k] for k in ("p2.5", "p16", "median", "p84", "p97.5")], true[i]),
+        rows[name] = dict(**_interval(s, true[i], pit[i]),
                           identified=bool(s["p97.5"] - s["p2.5"] < 0.5 * (high[i] - low[i])),
                           unresolved=name in post.record.unresolved,
                           mc_sd=s["mc_sd"], laplace_sd=s["laplace_sd"],
@@ -122,10 +127,8 @@ def run_set(args, index):
     true_derived, draws_derived = derived(post.labels, true), derived(post.labels, draws)
     derived_rows = {}
     for name, s in post.derived.items():
-        t = float(true_derived[name])
-        derived_rows[name] = dict(truth=t, median=s["median"], p16=s["p16"], p84=s["p84"], p2_5=s["p2.5"],
-                                  p97_5=s["p97.5"], pit=float(_place(draws_derived[name][:, None], np.array([t]))[0]),
-                                  **_holds([s[k] for k in ("p2.5", "p16", "median", "p84", "p97.5")], t),
+        t = true_derived[name]
+        derived_rows[name] = dict(**_interval(s, t, _place(draws_derived[name], t)),
                                   identified=bool(s["p97.5"] - s["p2.5"] < 1.0))  # half of [-1, 1]
     record = dict(
         set=index, seed=args.seed, fit_seed=args.fit_seed, variant=variant, product=product, no_std=args.no_std,
