@@ -57,6 +57,16 @@ def test_short_chain_is_reported():
     assert not chain.converged and chain.steps == 50
 
 
+def test_a_chain_that_stops_early_is_converged():
+    """The chain stops on the autocorrelation times it is judged by (those after its burn-in), so a chain
+    that stopped before ``max_steps`` is converged; frequent checks stop it close to the threshold."""
+    log_prob = lambda v: -0.5 * np.sum(np.asarray(v) ** 2, axis=1)
+    for seed in range(12):
+        chain = run_ensemble(log_prob, np.zeros(3), np.ones(3), seed=seed, walkers=8, max_steps=4000,
+                             check_every=10)
+        assert chain.steps < 4000 and chain.converged, seed
+
+
 def test_laplace_and_sensitivity_of_a_linear_least_squares_problem():
     """Laplace is the exact covariance; the sensitivity is the exact derivative of the solution."""
     a, y, sigma = _linear_problem(m=12)

@@ -179,27 +179,31 @@ def run_ensemble(log_prob, v0, scale, *, seed=0, walkers=WALKERS, max_steps=MAX_
     sampler.random_state = np.random.RandomState(int(rng.integers(2 ** 31))).get_state()
     t0 = time.perf_counter()
     state = emcee.State(start, log_prob=lp)
-    tau = np.full(n_par, np.inf)
+    burn, tau = 0, np.full(n_par, np.inf)
     steps = 0
     while steps < max_steps:
         n = min(check_every, max_steps - steps)
         state = sampler.run_mcmc(state, n, progress=False)
         steps += n
-        tau = _tau(sampler)
+        burn, tau = _burn_and_tau(sampler, steps)
         if progress:
             progress(f"{steps} steps; autocorrelation time up to {np.max(tau):.0f} steps "
                      f"({steps / np.max(tau):.0f} of the {CHAIN_TAUS} needed)")
         if steps >= CHAIN_TAUS * np.max(tau):
             break
     seconds = time.perf_counter() - t0
-    tau_max = float(np.max(tau))
-    burn = int(min(np.ceil(3 * tau_max), steps // 2))
-    tau = _tau(sampler, burn)
     samples = sampler.get_chain(discard=burn, flat=True)
     ess = walkers * (steps - burn) / tau
     return Chain(samples=samples, tau=tau, steps=steps, burn=burn, walkers=walkers,
                  acceptance=np.asarray(sampler.acceptance_fraction), ess=ess,
                  converged=bool(steps >= CHAIN_TAUS * np.max(tau)), seconds=seconds)
+
+
+def _burn_and_tau(sampler, steps):
+    """The burn-in, three autocorrelation times of the whole chain and at most half of it, and the
+    autocorrelation times after it: the chain stops on, and is judged by, the same estimate."""
+    burn = int(min(np.ceil(3 * np.max(_tau(sampler))), steps // 2))
+    return burn, _tau(sampler, burn)
 
 
 def _tau(sampler, discard=0):
