@@ -253,11 +253,11 @@ def write_reports(args, records):
                   + ", ".join(f"{r['noise_relative']:.3g}" for r in sets) + "; absolute "
                   + ", ".join(f"{r['noise_absolute']:.2g}" for r in sets) + "."]
     (out / "summary.md").write_text("\n".join(x for x in lines if x is not None) + "\n")
-    _figure(pairs, identified, groups, variants, out / "coverage.png")
+    _figure(pairs, identified, groups, variants, derived_pairs, out / "coverage.png")
     return pairs
 
 
-def _figure(pairs, identified, groups, variants, path):
+def _figure(pairs, identified, groups, variants, derived_pairs, path):
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(9, 4.2), constrained_layout=True)
@@ -285,6 +285,9 @@ def _figure(pairs, identified, groups, variants, path):
     for g in groups:
         chosen = [p["pit"] for _, name, p in pairs if _group(name) == g]
         bx.plot(LEVELS, coverage_curve(chosen), ".-", lw=0.8, ms=3, label=f"{g} ({len(chosen)})")
+    for name in dict.fromkeys(n for _, n, _ in derived_pairs):  # quantities of the parameters, dashed
+        chosen = [p["pit"] for _, n, p in derived_pairs if n == name]
+        bx.plot(LEVELS, coverage_curve(chosen), "k.--", lw=1.2, ms=3, label=f"{name} ({len(chosen)}, derived)")
     bx.legend(fontsize=7, loc="upper left", ncol=2)
     bx.set_title("per parameter")
     fig.savefig(path, dpi=90)
