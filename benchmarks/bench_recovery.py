@@ -64,7 +64,8 @@ import numpy as np
 
 import jaxcos
 from jaxcos.inference._bench import machine_record
-from jaxcos.inference._fit import batch_residuals, jackknife_se, make_problem, pair_terms, parameterization
+from jaxcos.inference._fit import (LOBE_NAMES, batch_residuals, jackknife_se, make_problem, ordered_lobes, pair_terms,
+                                  parameterization)
 from jaxcos.io import Measurements, material_to_dict, save_measurements
 
 GRID = importlib.resources.files("jaxcos") / "data" / "grid.csv"
@@ -237,11 +238,15 @@ def errors(fitted, truth, variant):
 
     For a single-lobe truth, ``g1``'s error is that of the fit's mean cosine
     ``w_g g1 + (1 - w_g) g2`` and ``g2``, ``w_g`` have none (NaN): any ``w_g`` with
-    ``g2 = g1`` is the same material.
+    ``g2 = g1`` is the same material. A two-lobe truth is compared with its lobes labelled as the fit labels
+    them, the more forward first (``jaxcos.inference._fit.ordered_lobes``).
     """
     fitted = dict(fitted)
     if variant == "single_lobe":
         fitted["g1"] = fitted["w_g"] * fitted["g1"] + (1 - fitted["w_g"]) * fitted["g2"]
+    else:
+        lobes = ordered_lobes(LOBE_NAMES, [float(truth[n]) for n in LOBE_NAMES], lambda w: 1.0 - w)
+        truth = {**truth, **dict(zip(LOBE_NAMES, lobes))}
     out = {}
     for n in NAMES:
         f, t = np.asarray(fitted[n]), np.asarray(truth[n])

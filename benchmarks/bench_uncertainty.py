@@ -60,6 +60,7 @@ sys.path.insert(0, HERE)
 
 import jaxcos  # noqa: E402
 from jaxcos.inference._bench import machine_record  # noqa: E402
+from jaxcos.inference._fit import ordered_lobes  # noqa: E402
 from jaxcos.inference._posterior import HI_WALKS, derived  # noqa: E402
 from bench_recovery import append_record, make_set, pending_sets  # noqa: E402
 
@@ -104,15 +105,17 @@ def run_set(args, index):
     post = jaxcos.uncertainty(meas, fitted, seed=args.fit_seed, hi_walks=args.hi_walks)
     post_time = time.perf_counter() - t0
     param = fitted.param
-    true = np.asarray(param.to_physical(param.from_material(truth)), float)
+    # every value with the diffusers' lobes labelled as the posterior reports them, the more forward first
+    ordered = lambda v: ordered_lobes(post.labels, v, lambda w: 1.0 - w)
+    true = ordered(np.asarray(param.to_physical(param.from_material(truth)), float))
     low, high = param.bounds()
     # the draws the intervals are percentiles of: the chain's, each shifted by a draw of its Monte Carlo error
     shift = rng.multivariate_normal(np.zeros(param.size), post.mc_cov, size=post.chain.samples.shape[0],
                                     method="eigh")
-    draws = np.clip(post.chain.samples + shift, low, high)
+    draws = ordered(np.clip(post.chain.samples + shift, low, high))
     pit = _place(draws, true)
     # the chain's own draws, without the Monte Carlo shift: the intervals of a posterior that leaves it out
-    chain = np.clip(post.chain.samples, low, high)
+    chain = ordered(np.clip(post.chain.samples, low, high))
     chain_q = np.percentile(chain, [2.5, 16, 50, 84, 97.5], axis=0)
     chain_pit = _place(chain, true)
     rows = {}

@@ -581,6 +581,51 @@ def test_parameterization_round_trip():
     assert param.size == 14 and len(param.labels()) == 14
 
 
+def _hg_mixture(layer, mu):
+    """The diffusers' phase function at scattering cosines ``mu``, from the Henyey-Greenstein formula."""
+    hg = lambda g: (1 - g * g) / (4 * np.pi * (1 + g * g - 2 * g * mu) ** 1.5)
+    w = float(layer.w_g)
+    return w * hg(float(layer.g1)) + (1 - w) * hg(float(layer.g2))
+
+
+def test_lobes_are_labelled_forward_first():
+    """Exchanging the lobes (``w_g`` to ``1 - w_g``) keeps the phase function, the fit's coordinates and the
+    physical values agree on it, labelled lobes stay as they are, and one lobe is left alone."""
+    from jaxcos.inference._fit import ordered_lobes
+
+    param = parameterization("two_lobe", fit_t=True)
+    crossed = jaxcos.Material(layers=(jaxcos.Layer(t=3.0, c_d=0.4, albedo_d=0.8, g1=-0.4, g2=0.7, w_g=0.3,
+                                                   albedo_p=0.7, alpha_p=0.05, theta_p=12.0),))
+    x = param.from_material(crossed)
+    ordered = param.to_material(param.ordered_lobes(x)).layers[0]
+    assert float(ordered.g1) == pytest.approx(0.7, abs=1e-5) and float(ordered.g2) == pytest.approx(-0.4, abs=1e-5)
+    assert float(ordered.w_g) == pytest.approx(0.7, abs=1e-5)
+    mu = np.linspace(-1, 1, 41)
+    np.testing.assert_allclose(_hg_mixture(ordered, mu), _hg_mixture(crossed.layers[0], mu), rtol=1e-4)
+    by_values = ordered_lobes(param.labels(), np.asarray(param.to_physical(x)), lambda w: 1 - w)
+    np.testing.assert_allclose(np.asarray(param.to_physical(param.ordered_lobes(x))), by_values, rtol=1e-5,
+                               atol=1e-6)
+    x_ordered = param.ordered_lobes(x)
+    np.testing.assert_array_equal(np.asarray(param.ordered_lobes(x_ordered)), np.asarray(x_ordered))
+    one = parameterization("single_lobe")
+    x_one = jnp.linspace(-1.0, 1.0, one.size)
+    np.testing.assert_array_equal(np.asarray(one.ordered_lobes(x_one)), np.asarray(x_one))
+
+
+@pytest.mark.slow
+def test_a_fit_reports_its_lobes_forward_first():
+    """Started with the lobes the other way round, a two-lobe fit still reports the more forward one first."""
+    crossed = jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=0.7, albedo_d=0.8, g1=-0.3, g2=0.5, w_g=0.4,
+                                                   albedo_p=0.8, alpha_p=0.2, theta_p=2.0),))
+    result = fit(_tiny(), walks=16, bounces=8, jacobian_walks=8, seed=SEED, start=crossed, finer=False,
+                 final_step=False)
+    layer = result.material.layers[0]
+    assert float(layer.g1) >= float(layer.g2)
+    np.testing.assert_allclose(np.asarray(result.param.to_physical(result.x)),
+                               np.asarray(result.param.to_physical(result.param.from_material(result.material))),
+                               rtol=1e-4, atol=1e-5)
+
+
 @pytest.mark.parametrize("variant, size", [("two_lobe", 12), ("single_lobe", 10), ("diffusers_only", 6),
                                            ("platelets_only", 5)])
 def test_variant_parameter_counts(variant, size):

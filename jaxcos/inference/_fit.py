@@ -145,6 +145,33 @@ INTERFACE_NAMES = ("eta", "alpha_s")
 """The parameters of a top interface (docs/model.md section 3a), fitted with ``interface=True``."""
 # The start of a fitted interface: a varnish-like index and a moderately rough surface.
 _INTERFACE_DEFAULT = dict(eta=1.5, alpha_s=0.1)
+LOBE_NAMES = ("g1", "g2", "w_g")
+"""The diffusers' two lobes: their asymmetries and the first one's weight."""
+
+
+def ordered_lobes(labels, v, complement):
+    """``v`` (``(..., P)``, columns as ``labels``) with the diffusers' lobes labelled so that ``g1 >= g2``.
+
+    The two-lobe phase function ``w_g f_HG(g1) + (1 - w_g) f_HG(g2)`` is
+    symmetric in its lobes: ``(g1, g2, w_g)`` and ``(g2, g1, 1 - w_g)`` are the
+    same material, and a fit may end in either. jaxcos reports the more
+    forward-scattering lobe as the first (as the paper's four materials have
+    it), so that the fits of several files and the draws of a posterior
+    compare lobe for lobe. Where ``g1 < g2`` the two are exchanged and ``w_g``
+    replaced by ``complement(w_g)``: ``1 - w_g`` for physical values, ``-x``
+    for the fit's coordinates (``w_g`` is the logistic function of ``x``, and
+    ``g1``, ``g2`` share one map, which keeps their order). ``v`` is returned
+    as it is without a second lobe.
+    """
+    if not set(LOBE_NAMES) <= set(labels):
+        return v
+    i1, i2, iw = (list(labels).index(n) for n in LOBE_NAMES)
+    v = np.array(v, copy=True)
+    swap = v[..., i1] < v[..., i2]
+    g1, g2, w = v[..., i1].copy(), v[..., i2].copy(), v[..., iw].copy()
+    v[..., i1], v[..., i2], v[..., iw] = (np.where(swap, g2, g1), np.where(swap, g1, g2),
+                                          np.where(swap, complement(w), w))
+    return v
 
 
 
@@ -339,6 +366,10 @@ class Parameterization(eqx.Module):
         a uniform prior."""
         ranges = [RANGES[n] for n in self.names for _ in range(RANGES[n].size)]
         return np.array([r.fit_low for r in ranges]), np.array([r.fit_high for r in ranges])
+
+    def ordered_lobes(self, x):
+        """``x`` with the diffusers' lobes labelled so that ``g1 >= g2`` (:func:`ordered_lobes`): the same material."""
+        return jnp.asarray(ordered_lobes(self.labels(), np.asarray(x), np.negative), dtype=jnp.asarray(x).dtype)
 
     def from_material(self, material):
         """The unbounded coordinates of ``material``; without an interface, a fitted one starts at its default."""
@@ -1502,13 +1533,14 @@ class FitResult:
     """The outcome of :func:`fit`.
 
     Attributes:
-        material: the fitted material.
+        material: the fitted material, its diffusers' lobes labelled so that ``g1 >= g2`` (:func:`ordered_lobes`).
         record: its :class:`FitRecord` (``record.to_json()``: the ``"fit"`` record of docs/formats.md).
         model: ``(N, 3)`` the fitted model in the file's quantity.
         model_std: ``(N, 3)`` its Monte Carlo standard error.
         starts: a :class:`StartSummary` per refined start.
-        x: the fitted unbounded coordinates; ``param`` maps them.
-        problem: the selected start's objective (its last pass's weights and lobe probabilities).
+        x: the fitted unbounded coordinates; ``param`` maps them to ``material``.
+        problem: the selected start's objective (its last pass's weights and lobe probabilities); it
+            fitted ``x`` with the lobes as they were, which estimates the same material.
     """
 
     material: Material
@@ -2172,6 +2204,7 @@ def summarise(meas, refined, selection, polished, *, method, variant, seed, budg
     )
     starts = [StartSummary(r.label, float(r.loss), c.material_chi2, c.material_chi2_se)
               for r, c in zip(refined, selection.checks)]
+    x = param.ordered_lobes(x)
     return FitResult(material=param.to_material(x), record=record, model=model, model_std=model_std,
                      starts=starts, x=x, param=param, problem=problem)
 

@@ -73,7 +73,7 @@ import numpy as np
 import optimistix as optx
 
 from .._errors import InputError
-from ._fit import fit, make_problem
+from ._fit import fit, make_problem, ordered_lobes
 from ..model import POSTERIOR_BUDGET, lobe_probabilities, simulate
 
 WALKERS = 32
@@ -753,9 +753,19 @@ def _percentiles(fit, samples):
                 **{"p2.5": float(q[0]), "p97.5": float(q[4])})
 
 
+def _ordered(labels, v):
+    """Physical values ``v`` (``(..., P)``) with the diffusers' lobes labelled so that ``g1 >= g2``
+    (:func:`~jaxcos.inference._fit.ordered_lobes`)."""
+    return ordered_lobes(labels, v, lambda w: 1.0 - w)
+
+
 def summarise(chain, mc_cov, labels, fit_values, lin, laplace_sd, low, high, *, rng):
     """``(summary, derived_summary, correlation)``: the per-parameter table of :class:`Posterior` with the Monte
     Carlo error, and the same percentiles of the :func:`derived` quantities.
+
+    Draws whose lobes cross (``g1 < g2``, where the fit's two lobes are alike)
+    are relabelled (:func:`_ordered`): the reported intervals are those of the
+    posterior with the more forward lobe first, as the fit reports it.
 
     The chain samples the posterior of one fixed-key estimate of the model; a
     different key would shift it by a draw of the Monte Carlo error mapped
@@ -763,10 +773,10 @@ def summarise(chain, mc_cov, labels, fit_values, lin, laplace_sd, low, high, *, 
     shift from ``rng``, and the reported spreads include it.
     """
     shift = rng.multivariate_normal(np.zeros(len(labels)), mc_cov, size=chain.samples.shape[0], method="eigh")
-    samples = np.clip(chain.samples + shift, low, high)
+    samples = _ordered(labels, np.clip(chain.samples + shift, low, high))
     at_fit = derived(labels, fit_values)
     derived_summary = {name: _percentiles(at_fit[name], d) for name, d in derived(labels, samples).items()}
-    q_noise = np.percentile(chain.samples, [16, 84], axis=0)
+    q_noise = np.percentile(_ordered(labels, chain.samples), [16, 84], axis=0)
     summary = {}
     for i, name in enumerate(labels):
         row = _percentiles(fit_values[i], samples[:, i])
@@ -938,6 +948,12 @@ class Posterior:
     def converged(self):
         return self.chain.converged
 
+    @property
+    def draws(self):
+        """``(S, P)`` the chain's samples, the diffusers' lobes labelled so that ``g1 >= g2`` as in the summary
+        (the chain itself samples the linearisation's coordinates about the anchor)."""
+        return _ordered(self.labels, self.chain.samples)
+
 
 def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_STEPS, hi_walks=HI_WALKS,
                 checks=16, replicas=24, progress=None):
@@ -972,7 +988,7 @@ def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_ST
     low, high = param.bounds()
     # A float32 fit can sit a rounding below a bound that float32 cannot hold (eta 1.01, alpha_s 0.005): the
     # chain's walkers start around the anchor, which must lie in the prior's support.
-    v0 = np.clip(np.asarray(param.to_physical(fit_result.x), float), low, high)
+    v0 = np.clip(np.asarray(param.to_physical(param.ordered_lobes(fit_result.x)), float), low, high)
     estimated = meas.std is None
     if walkers is None:
         walkers = max(WALKERS, 2 * param.size + 2)

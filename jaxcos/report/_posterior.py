@@ -181,7 +181,7 @@ def _corner(post, path):
 
     matplotlib.use("Agg", force=False)
     thin = max(int(np.max(post.chain.tau) / 2), 1)
-    samples = post.chain.samples[::thin]
+    samples = post.draws[::thin]
     fig = corner.corner(samples, labels=post.labels, truths=[s["fit"] for s in post.summary.values()],
                         quantiles=[0.16, 0.5, 0.84], label_kwargs=dict(fontsize=8))
     fig.savefig(path, dpi=70)
