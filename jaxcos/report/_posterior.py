@@ -71,8 +71,9 @@ def _laplace_notes(post):
     if g2 is not None and g1["p2.5"] <= g2["p97.5"] and g2["p2.5"] <= g1["p97.5"]:
         notes.append(f"`w_g`: the 95% intervals of `g1` [{g1['p2.5']:.3g}, {g1['p97.5']:.3g}] and `g2` "
                      f"[{g2['p2.5']:.3g}, {g2['p97.5']:.3g}] overlap, so the data may not tell the two lobes "
-                     "apart, and then any `w_g` fits alike; its interval describes the mode around the anchor "
-                     "only. The single-lobe variant may serve as well (`jaxcos ablate`).")
+                     "apart, and then any `w_g` fits alike. Each draw names its more forward lobe `g1`, so where "
+                     "the lobes cross in the chain `w_g`'s interval holds the weights of both labellings. The "
+                     "single-lobe variant may serve as well (`jaxcos ablate`).")
     return notes
 
 
