@@ -245,7 +245,7 @@ def errors(fitted, truth, variant):
     if variant == "single_lobe":
         fitted["g1"] = fitted["w_g"] * fitted["g1"] + (1 - fitted["w_g"]) * fitted["g2"]
     else:
-        lobes = ordered_lobes(LOBE_NAMES, [float(truth[n]) for n in LOBE_NAMES], lambda w: 1.0 - w)
+        lobes = ordered_lobes(LOBE_NAMES, [float(truth[n]) for n in LOBE_NAMES])
         truth = {**truth, **dict(zip(LOBE_NAMES, lobes))}
     out = {}
     for n in NAMES:

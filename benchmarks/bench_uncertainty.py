@@ -106,7 +106,7 @@ def run_set(args, index):
     post_time = time.perf_counter() - t0
     param = fitted.param
     # every value with the diffusers' lobes labelled as the posterior reports them, the more forward first
-    ordered = lambda v: ordered_lobes(post.labels, v, lambda w: 1.0 - w)
+    ordered = lambda v: ordered_lobes(post.labels, v)
     true = ordered(np.asarray(param.to_physical(param.from_material(truth)), float))
     low, high = param.bounds()
     # the draws the intervals are percentiles of: the chain's, each shifted by a draw of its Monte Carlo error

@@ -602,7 +602,7 @@ def test_lobes_are_labelled_forward_first():
     assert float(ordered.w_g) == pytest.approx(0.7, abs=1e-5)
     mu = np.linspace(-1, 1, 41)
     np.testing.assert_allclose(_hg_mixture(ordered, mu), _hg_mixture(crossed.layers[0], mu), rtol=1e-4)
-    by_values = ordered_lobes(param.labels(), np.asarray(param.to_physical(x)), lambda w: 1 - w)
+    by_values = ordered_lobes(param.labels(), np.asarray(param.to_physical(x)))
     np.testing.assert_allclose(np.asarray(param.to_physical(param.ordered_lobes(x))), by_values, rtol=1e-5,
                                atol=1e-6)
     x_ordered = param.ordered_lobes(x)

@@ -149,7 +149,7 @@ LOBE_NAMES = ("g1", "g2", "w_g")
 """The diffusers' two lobes: their asymmetries and the first one's weight."""
 
 
-def ordered_lobes(labels, v, complement):
+def ordered_lobes(labels, v, complement=lambda w: 1.0 - w):
     """``v`` (``(..., P)``, columns as ``labels``) with the diffusers' lobes labelled so that ``g1 >= g2``.
 
     The two-lobe phase function ``w_g f_HG(g1) + (1 - w_g) f_HG(g2)`` is
@@ -158,8 +158,8 @@ def ordered_lobes(labels, v, complement):
     forward-scattering lobe as the first (as the paper's four materials have
     it), so that the fits of several files and the draws of a posterior
     compare lobe for lobe. Where ``g1 < g2`` the two are exchanged and ``w_g``
-    replaced by ``complement(w_g)``: ``1 - w_g`` for physical values, ``-x``
-    for the fit's coordinates (``w_g`` is the logistic function of ``x``, and
+    replaced by ``complement(w_g)``: ``1 - w_g`` for physical values (the
+    default), ``-x`` for the fit's coordinates (``w_g`` is the logistic function of ``x``, and
     ``g1``, ``g2`` share one map, which keeps their order). ``v`` is returned
     as it is without a second lobe.
     """
@@ -167,8 +167,9 @@ def ordered_lobes(labels, v, complement):
         return v
     i1, i2, iw = (list(labels).index(n) for n in LOBE_NAMES)
     v = np.array(v, copy=True)
-    swap = v[..., i1] < v[..., i2]
-    g1, g2, w = v[..., i1].copy(), v[..., i2].copy(), v[..., iw].copy()
+    g1, g2, w = v[..., i1], v[..., i2], v[..., iw]
+    swap = g1 < g2
+    # every right-hand side is a new array, made before any column is written
     v[..., i1], v[..., i2], v[..., iw] = (np.where(swap, g2, g1), np.where(swap, g1, g2),
                                           np.where(swap, complement(w), w))
     return v

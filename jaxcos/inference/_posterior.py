@@ -73,7 +73,7 @@ import numpy as np
 import optimistix as optx
 
 from .._errors import InputError
-from ._fit import fit, make_problem, ordered_lobes
+from ._fit import LOBE_NAMES, fit, make_problem, ordered_lobes
 from ..model import POSTERIOR_BUDGET, lobe_probabilities, simulate
 
 WALKERS = 32
@@ -740,9 +740,9 @@ def derived(labels, v):
     so the data may fix the mean cosine better than how it is split between
     the lobes (benchmarks/RESULTS.md, "Posterior").
     """
-    if not {"g1", "g2", "w_g"} <= set(labels):
+    if not set(LOBE_NAMES) <= set(labels):
         return {}
-    g1, g2, w = (np.asarray(v, float)[..., labels.index(n)] for n in ("g1", "g2", "w_g"))
+    g1, g2, w = (np.asarray(v, float)[..., labels.index(n)] for n in LOBE_NAMES)
     return {"g_mean": w * g1 + (1.0 - w) * g2}
 
 
@@ -753,18 +753,12 @@ def _percentiles(fit, samples):
                 **{"p2.5": float(q[0]), "p97.5": float(q[4])})
 
 
-def _ordered(labels, v):
-    """Physical values ``v`` (``(..., P)``) with the diffusers' lobes labelled so that ``g1 >= g2``
-    (:func:`~jaxcos.inference._fit.ordered_lobes`)."""
-    return ordered_lobes(labels, v, lambda w: 1.0 - w)
-
-
 def summarise(chain, mc_cov, labels, fit_values, lin, laplace_sd, low, high, *, rng):
     """``(summary, derived_summary, correlation)``: the per-parameter table of :class:`Posterior` with the Monte
     Carlo error, and the same percentiles of the :func:`derived` quantities.
 
     Draws whose lobes cross (``g1 < g2``, where the fit's two lobes are alike)
-    are relabelled (:func:`_ordered`): the reported intervals are those of the
+    are relabelled (:func:`~jaxcos.inference._fit.ordered_lobes`): the reported intervals are those of the
     posterior with the more forward lobe first, as the fit reports it.
 
     The chain samples the posterior of one fixed-key estimate of the model; a
@@ -773,10 +767,10 @@ def summarise(chain, mc_cov, labels, fit_values, lin, laplace_sd, low, high, *, 
     shift from ``rng``, and the reported spreads include it.
     """
     shift = rng.multivariate_normal(np.zeros(len(labels)), mc_cov, size=chain.samples.shape[0], method="eigh")
-    samples = _ordered(labels, np.clip(chain.samples + shift, low, high))
+    samples = ordered_lobes(labels, np.clip(chain.samples + shift, low, high))
     at_fit = derived(labels, fit_values)
     derived_summary = {name: _percentiles(at_fit[name], d) for name, d in derived(labels, samples).items()}
-    q_noise = np.percentile(_ordered(labels, chain.samples), [16, 84], axis=0)
+    q_noise = np.percentile(ordered_lobes(labels, chain.samples), [16, 84], axis=0)
     summary = {}
     for i, name in enumerate(labels):
         row = _percentiles(fit_values[i], samples[:, i])
@@ -952,7 +946,7 @@ class Posterior:
     def draws(self):
         """``(S, P)`` the chain's samples, the diffusers' lobes labelled so that ``g1 >= g2`` as in the summary
         (the chain itself samples the linearisation's coordinates about the anchor)."""
-        return _ordered(self.labels, self.chain.samples)
+        return ordered_lobes(self.labels, self.chain.samples)
 
 
 def uncertainty(meas, fit_result=None, *, seed=0, walkers=None, max_steps=MAX_STEPS, hi_walks=HI_WALKS,
