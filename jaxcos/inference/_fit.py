@@ -404,6 +404,11 @@ def parameterization(variant="two_lobe", *, fit_t=False, fit_phi=False, interfac
 # --- the objective ----------------------------------------------------------------
 
 
+def weighted_residuals(measured, sigma, model):
+    """``(model - measured) / sigma`` of ``(N, 3)`` arrays, flattened over points and channels (channel last)."""
+    return ((model - measured) / sigma).reshape(-1)
+
+
 class WeightedLeastSquares(eqx.Module):
     """A weighted least-squares problem: residuals ``(model(x) - measured) / sigma``, flattened.
 
@@ -425,7 +430,7 @@ class WeightedLeastSquares(eqx.Module):
 
     def weigh(self, model):
         """The residuals ``(model - measured) / std`` of a model ``(N, 3)`` in the file's quantity, flattened."""
-        return ((model - self.measured) / self.sigma).reshape(-1)
+        return weighted_residuals(self.measured, self.sigma, model)
 
     def residuals(self, x):
         """The residuals at ``x``, flattened over points and channels (colour channel last)."""
@@ -503,7 +508,7 @@ class Problem(WeightedLeastSquares):
 
     def residuals(self, x):
         """The residuals at ``x``, flattened over points and channels (colour channel last)."""
-        return _weigh(self, self.estimate(x).f)
+        return _weigh(self.measured, self.sigma, self.scale, self.estimate(x).f)
 
     def jacobian(self, x):
         """The residuals' Jacobian ``(M, P)`` at ``x`` and the residuals it comes with.
@@ -581,10 +586,13 @@ def _pool(estimates):
     return dataclasses.replace(mean, stderr=stderr)
 
 
-@eqx.filter_jit
-def _weigh(problem, f):
-    """The residuals of the BSDF ``f`` ``(N, 3)`` under ``problem``'s weights (one small compiled program)."""
-    return problem.weigh(problem.scale * f)
+@jax.jit
+def _weigh(measured, sigma, scale, f):
+    """:func:`weighted_residuals` of the BSDF ``f`` ``(N, 3)`` times ``scale``, in one small compiled program.
+
+    It reads arrays only, so that every :class:`Problem` of a fit shares it, whatever its budget.
+    """
+    return weighted_residuals(measured, sigma, scale * f)
 
 
 @functools.partial(jax.jit, static_argnums=(2,))
