@@ -922,24 +922,51 @@ def test_existing_result_is_not_overwritten(tmp_path, capsys):
 
 
 def test_unweighted_report_says_where_the_loss_comes_from():
-    """A fit to a file without std says how much of L2 its brightest points carry, and when the rest is missed."""
+    """A fit to a file without std says how much of L2 its brightest points carry, and when it trades the rest for them."""
     from jaxcos.report._fit import _unweighted_lines
 
     values = np.full((20, 3), 0.5)
     values[:2] = 10.0                                   # two bright highlight points of twenty
     meas = Measurements(theta_i=np.full(20, 30.0), theta_o=np.linspace(-60.0, 80.0, 20), phi_o=np.zeros(20),
                         values=values, std=None, quantity="reflectance_factor", metadata={}, path="x.csv")
-    # the highlight fitted, the body missed by 60%: the body carries all of L2
+    # the highlight off by 0.5, the body by 15%: 2 x 3 x 0.25 against 18 x 3 x 0.075^2, the highlight 83% of L2
+    traded = values * 0.85
+    traded[:2] = 10.5
+    text = "\n".join(_unweighted_lines(meas, traded))
+    assert "brightest 2 of 20 points (mean value at least 10)" in text
+    assert "carry 83% of L2" in text and "by 15% in the median" in text and "favours the bright points" in text
+    assert "--noise 0.05,0.005" in text
+    # the highlight exact, the body missed by 60%: the body carries all of L2, which a weighting would not move
     missed = values.copy()
     missed[2:] *= 0.4
     text = "\n".join(_unweighted_lines(meas, missed))
-    assert "brightest 2 of 20 points (mean value at least 10)" in text
-    assert "carry 0% of L2" in text and "by 60% in the median" in text and "favours the bright points" in text
-    # the body fitted to 10%, the highlight off by 1: the highlight carries 2 x 3 / (2 x 3 + 18 x 3 x 0.05^2)
-    close = values * 1.1
+    assert "carry 0% of L2" in text and "by 60% in the median" in text and "favours" not in text
+    # the body fitted to 5%, the highlight off by 1: the highlight carries 2 x 3 / (2 x 3 + 18 x 3 x 0.025^2)
+    close = values * 1.05
     close[:2] = 11.0
     text = "\n".join(_unweighted_lines(meas, close))
-    assert "carry 98% of L2" in text and "by 10% in the median" in text and "favours" not in text
+    assert "carry 99% of L2" in text and "by 5% in the median" in text and "favours" not in text
+
+
+def test_a_fit_that_trades_its_body_names_the_noise_model():
+    """The command's hint after an unweighted fit whose highlight carries most of L2 while the body is missed by
+    more than a tenth names --noise; none where the body is within a tenth, where the body carries the loss, or for
+    a file with std (or weighted by --noise)."""
+    from jaxcos.report import body_hint
+
+    values = np.full((20, 3), 0.5)
+    values[:2] = 10.0
+    meas = Measurements(theta_i=np.full(20, 30.0), theta_o=np.linspace(-60.0, 80.0, 20), phi_o=np.zeros(20),
+                        values=values, std=None, quantity="reflectance_factor", metadata={}, path="x.csv")
+    traded = values * 0.85                              # the body 15% dark, the highlight 0.5 low: 83% of L2
+    traded[:2] = 9.5
+    hint = body_hint(meas, traded)
+    assert "carry 83% of it" in hint and "by 15% in the median" in hint and "--noise 0.05,0.005" in hint
+    assert body_hint(meas, values * 1.05) is None
+    body_only = values * 0.85
+    body_only[:2] = 10.0
+    assert body_hint(meas, body_only) is None
+    assert body_hint(meas.with_noise(0.05, 0.005), traded) is None
 
 
 # --- the top interface and the noise model --------------------------------------------------------------

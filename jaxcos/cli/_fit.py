@@ -6,7 +6,7 @@ from .._errors import InputError, refuse_overwrite
 from ..inference import fit
 from ..io import load_measurements, load_params
 from ..model import FIT_BUDGET, FIT_JACOBIAN_WALKS, check_variant, resolve_budget
-from ..report import FIT_FILES, gloss_hint, write_fit
+from ..report import FIT_FILES, body_hint, gloss_hint, write_fit
 from ._catalogue import (Job, add_catalogue_options, check_catalogue_options, draw_curves, is_catalogue,
                          run_catalogue)
 from ._common import add_budget, progress
@@ -144,9 +144,9 @@ def _cmd(args):
     refuse_overwrite([os.path.join(args.out, name) for name in FIT_FILES], args.force)
     result, meas = fit_file(args.measurements[0], args.out, options, force=args.force, progress=progress("fit"))
     print(_summary(result.record, args.out))
-    hint = gloss_hint(meas, result.material)
-    if hint is not None:
-        print(hint)
+    for hint in (gloss_hint(meas, result.material), body_hint(meas, result.model)):
+        if hint is not None:
+            print(hint)
 
 
 def add_command(sub):

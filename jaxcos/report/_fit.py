@@ -137,8 +137,10 @@ def _final_step_lines(r):
 
 BRIGHT_FRACTION = 0.1
 """An unweighted fit's report says how much of L2 its brightest points (this fraction of them) carry."""
-RELATIVE_MISS = 0.25
-"""An unweighted fit's report warns when its other points' median relative difference exceeds this."""
+RELATIVE_MISS = 0.10
+"""An unweighted fit's report and command warn when its other points' median relative difference exceeds this
+while its brightest points carry most of L2 (:func:`favours_bright`): beyond a tenth the body renders as another
+colour (issue 30's bound on a dewy product's body)."""
 
 
 class LossSplit(NamedTuple):
@@ -169,6 +171,13 @@ def loss_split(meas, model):
     return LossSplit(bright, float(share), miss)
 
 
+def favours_bright(split):
+    """Whether a plain-L2 fit's :class:`LossSplit` shows the fit trading its body for its highlight: the brightest
+    points carry more than half of L2 and the others are missed by more than :data:`RELATIVE_MISS` in the median.
+    Where the body carries most of L2 a weighting would not move it."""
+    return split.share > 0.5 and split.body_miss > RELATIVE_MISS
+
+
 def _unweighted_lines(meas, model):
     """Where an unweighted fit's L2 comes from: its brightest points against the rest.
 
@@ -176,17 +185,30 @@ def _unweighted_lines(meas, model):
     few bright highlight points can outweigh the whole diffuse body; these
     lines say how much, and what to do if the rest matters.
     """
-    bright, share, miss = loss_split(meas, model)
+    split = loss_split(meas, model)
+    bright, share, miss = split
     n_bright = int(bright.sum())
     brightness = meas.values.mean(axis=1)
     text = (f"The file has no std, so the fit minimises the plain L2: every point counts by its absolute difference, "
             f"and the brightest weigh most. The brightest {n_bright} of {bright.size} points (mean value at least "
             f"{brightness[bright].min():.3g}) carry {100 * share:.0f}% of L2; on the other points the fitted values "
             f"differ from the measured by {100 * miss:.0f}% in the median.")
-    if miss > RELATIVE_MISS:
-        text += (" **The fit favours the bright points over the rest of the table.** If the rest matters, "
-                 "give the file std columns: a relative noise level weighs each point by its size.")
+    if favours_bright(split):
+        text += (" **The fit favours the bright points over the rest of the table.** If the rest matters, weigh "
+                 "each point by its size: fit with `--noise REL,ABS` (a standard deviation of `REL` times each "
+                 "value plus `ABS`; for example `--noise 0.05,0.005`), or give the file std columns.")
     return ["", "## Where the loss comes from", "", text]
+
+
+def body_hint(meas, model):
+    """For a fit to ``meas`` without std whose model ``(N, 3)`` trades the body for the highlight
+    (:func:`favours_bright`), what to do: one sentence naming ``--noise``; else ``None``."""
+    split = None if meas.std is not None else loss_split(meas, model)
+    if split is None or not favours_bright(split):
+        return None
+    return (f"The plain L2 favours the brightest points (a tenth of them carry {100 * split.share:.0f}% of it): the "
+            f"fit misses the others by {100 * split.body_miss:.0f}% in the median. To weigh each point by its size, fit with --noise REL,ABS (a standard deviation of REL times "
+            "each value plus ABS; for example --noise 0.05,0.005).")
 
 
 def surface_gloss(meas):
