@@ -417,6 +417,30 @@ def test_report_says_when_the_chain_reaches_the_edge_of_the_linearisation():
     assert notes[2].startswith("`unresolved`") and "Monte Carlo noise" in notes[2]
 
 
+def test_report_names_unresolved_parameters_behind_a_laplace_disagreement():
+    """Where the chain is narrower than the Laplace sd only through a parameter the linearisation does not resolve
+    (the Laplace sd with it held agrees), the note names that parameter; otherwise it says "not Gaussian"."""
+    from jaxcos.report._posterior import _laplace_notes
+
+    # Laplace: a and u correlated 0.9, sd 0.1 each: a's sd with u held is 0.1 sqrt(1 - 0.81) = 0.0436
+    cov = 0.01 * np.array([[1.0, 0.9, 0.0], [0.9, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    row = dict(laplace_sd=0.1, **{"p2.5": 0.3, "p97.5": 0.7})
+    summary = {"a": dict(row, p16_noise_only=0.455, p84_noise_only=0.545),      # half-width 0.045
+               "u": dict(row, p16_noise_only=0.4, p84_noise_only=0.6),
+               "b": dict(row, p16_noise_only=0.48, p84_noise_only=0.52)}         # 0.02: too narrow either way
+    box = {n: (0.0, 1.0) for n in summary}
+
+    def post(unresolved):
+        record = SimpleNamespace(prior=box, linear_region=box, unresolved=unresolved)
+        return SimpleNamespace(summary=summary, record=record, labels=["a", "u", "b"], laplace_cov=cov)
+
+    notes = {n.split("`")[1]: n for n in _laplace_notes(post(["u"]))}
+    assert "0.0436 with `u` held" in notes["a"] and "not Gaussian" not in notes["a"]
+    assert "not Gaussian" in notes["b"]
+    notes = {n.split("`")[1]: n for n in _laplace_notes(post([]))}
+    assert "not Gaussian" in notes["a"]
+
+
 def test_mean_cosine_is_the_first_moment_of_the_diffuser_mixture():
     """``g_mean`` against the mean of ``w . w'`` under the walk's own two-lobe phase function, integrated
     numerically over the sphere (midpoint rule in ``cos``; the function is azimuthally symmetric)."""

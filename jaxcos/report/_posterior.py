@@ -40,6 +40,18 @@ def _json_safe(x):
     return x
 
 
+def _held_sd(post, name):
+    """The Laplace sd of ``name`` with the unresolved parameters held (``None`` where there are none):
+    ``sqrt(S_nn - S_nu S_uu^-1 S_un)`` of the Laplace covariance ``S``, ``u`` the unresolved."""
+    if not post.record.unresolved:
+        return None
+    cov = np.asarray(post.laplace_cov, float)
+    u = [post.labels.index(n) for n in post.record.unresolved]
+    i = post.labels.index(name)
+    var = cov[i, i] - cov[i, u] @ np.linalg.lstsq(cov[np.ix_(u, u)], cov[u, i], rcond=None)[0]
+    return float(np.sqrt(max(var, 0.0)))
+
+
 def _laplace_notes(post):
     """One sentence per parameter where the Laplace spread and the chain's disagree, or the prior cuts the posterior."""
     notes = []
@@ -65,8 +77,16 @@ def _laplace_notes(post):
             notes.append(f"`{name}`: the Jacobian barely constrains it (Laplace sd {s['laplace_sd']:.3g}); "
                          "the data hardly identify it.")
         elif half > 0 and not 2 / 3 <= half / s["laplace_sd"] <= 3 / 2:
-            notes.append(f"`{name}`: chain half-width {half:.3g} against Laplace sd {s['laplace_sd']:.3g}; "
-                         "the posterior is not Gaussian at this scale.")
+            held = _held_sd(post, name)
+            if held is not None and 2 / 3 <= half / held <= 3 / 2:
+                names = ", ".join(f"`{n}`" for n in post.record.unresolved)
+                notes.append(f"`{name}`: chain half-width {half:.3g} against Laplace sd {s['laplace_sd']:.3g}, "
+                             f"and {held:.3g} with {names} held: the difference is its correlation with "
+                             "parameters the linearisation does not resolve, so its interval holds for them "
+                             "within their region.")
+            else:
+                notes.append(f"`{name}`: chain half-width {half:.3g} against Laplace sd {s['laplace_sd']:.3g}; "
+                             "the posterior is not Gaussian at this scale.")
     g1, g2 = post.summary.get("g1"), post.summary.get("g2")
     if g2 is not None and g1["p2.5"] <= g2["p97.5"] and g2["p2.5"] <= g1["p97.5"]:
         notes.append(f"`w_g`: the 95% intervals of `g1` [{g1['p2.5']:.3g}, {g1['p97.5']:.3g}] and `g2` "
