@@ -922,7 +922,8 @@ def test_existing_result_is_not_overwritten(tmp_path, capsys):
 
 
 def test_unweighted_report_says_where_the_loss_comes_from():
-    """A fit to a file without std says how much of L2 its brightest points carry, and when it trades the rest for them."""
+    """A fit to a file without std says how much of L2 its brightest points carry, and when it trades the rest for
+    them."""
     from jaxcos.report._fit import _unweighted_lines
 
     values = np.full((20, 3), 0.5)

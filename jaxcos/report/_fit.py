@@ -195,20 +195,26 @@ def _unweighted_lines(meas, model):
             f"differ from the measured by {100 * miss:.0f}% in the median.")
     if favours_bright(split):
         text += (" **The fit favours the bright points over the rest of the table.** If the rest matters, weigh "
-                 "each point by its size: fit with `--noise REL,ABS` (a standard deviation of `REL` times each "
-                 "value plus `ABS`; for example `--noise 0.05,0.005`), or give the file std columns.")
+                 f"each point by its size: fit with {_NOISE_OPTION}, or give the file std columns.")
     return ["", "## Where the loss comes from", "", text]
+
+
+_NOISE_OPTION = ("--noise REL,ABS (a standard deviation of REL times each value plus ABS; for example "
+                 "--noise 0.05,0.005)")
+"""The advice of :func:`_unweighted_lines` and :func:`body_hint`."""
 
 
 def body_hint(meas, model):
     """For a fit to ``meas`` without std whose model ``(N, 3)`` trades the body for the highlight
     (:func:`favours_bright`), what to do: one sentence naming ``--noise``; else ``None``."""
-    split = None if meas.std is not None else loss_split(meas, model)
-    if split is None or not favours_bright(split):
+    if meas.std is not None:
+        return None
+    split = loss_split(meas, model)
+    if not favours_bright(split):
         return None
     return (f"The plain L2 favours the brightest points (a tenth of them carry {100 * split.share:.0f}% of it): the "
-            f"fit misses the others by {100 * split.body_miss:.0f}% in the median. To weigh each point by its size, fit with --noise REL,ABS (a standard deviation of REL times "
-            "each value plus ABS; for example --noise 0.05,0.005).")
+            f"fit misses the others by {100 * split.body_miss:.0f}% in the median. To weigh each point by its "
+            f"size, fit with {_NOISE_OPTION}.")
 
 
 def surface_gloss(meas):
