@@ -1090,6 +1090,25 @@ def test_noise_option_weighs_a_file_without_std(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_report_names_the_weighting_of_the_points():
+    """The report's weighting comes from how std was made, never from a file's own ``# noise:`` line.
+
+    The bundled files describe their simulated noise in such a line, and have
+    std columns: their fits are weighted by those columns, not by ``--noise``.
+    """
+    from jaxcos.report._fit import _weighting
+
+    described = dataclasses.replace(_tiny(), metadata={"noise": "value = v + N(0, s^2)"})
+    assert _weighting(described) == "Weights: the file's std columns."
+    plain = dataclasses.replace(described, std=None)
+    assert "plain L2" in _weighting(plain)
+    weighted = plain.with_noise(0.05, 0.005)
+    assert weighted.noise == (0.05, 0.005) and weighted.metadata == described.metadata
+    assert "std = 0.05 * value + 0.005 (`--noise`" in _weighting(weighted)
+    # in another quantity the absolute level follows the values
+    assert weighted.to_quantity("brdf").noise == pytest.approx((0.05, 0.005 / np.pi))
+
+
 def test_fitted_thickness_under_an_interface_holds_the_boundary_probability():
     """With ``t`` fitted under an interface the boundary probability stays that of the start, and the connection is nee.
 

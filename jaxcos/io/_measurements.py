@@ -83,6 +83,10 @@ class Measurements:
         quantity: ``"reflectance_factor"`` (``pi * f``) or ``"brdf"`` (``f``, 1/sr).
         metadata: the file's ``# key: value`` lines, in order (values as text).
         path: the file the table came from (``""`` if built in memory).
+        noise: ``(relative, absolute)``, the levels of the noise model that
+            gave ``std`` (:meth:`with_noise`; ``absolute`` in ``quantity``), or
+            ``None`` where ``std`` is the file's or there is none. A file's own
+            ``# noise:`` line is metadata, never read as this.
 
     The arrays are read-only.
     """
@@ -95,6 +99,7 @@ class Measurements:
     quantity: str = "reflectance_factor"
     metadata: dict = dataclasses.field(default_factory=dict)
     path: str = ""
+    noise: tuple | None = None
 
     def __post_init__(self):
         if self.quantity not in QUANTITIES:
@@ -127,6 +132,7 @@ class Measurements:
             std=None if self.std is None else self.std * scale,
             quantity=quantity,
             metadata={**self.metadata, "quantity": quantity},
+            noise=None if self.noise is None else (self.noise[0], self.noise[1] * scale),
         )
 
     @property
@@ -140,7 +146,8 @@ class Measurements:
         For a file without std columns: the fit then weighs every point by its
         size instead of minimising the plain L2. ``relative`` and ``absolute``
         are in the table's quantity (absolute) or dimensionless (relative);
-        at least one must be positive, neither negative.
+        at least one must be positive, neither negative. The returned table
+        holds them as :attr:`noise`; its metadata are the file's.
 
         Raises:
             InputError: if the table has std columns already or the levels are invalid.
@@ -155,7 +162,7 @@ class Measurements:
         if np.any(std <= 0):
             raise InputError(f"{name}: the noise model {relative:g},{absolute:g} gives a zero std where a value is 0; "
                              "add an absolute level.")
-        return dataclasses.replace(self, std=std, metadata={**self.metadata, "noise": f"{relative:g} * value + {absolute:g}"})
+        return dataclasses.replace(self, std=std, noise=(float(relative), float(absolute)))
 
     @property
     def brdf(self):

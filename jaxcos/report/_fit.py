@@ -285,9 +285,10 @@ def _weighting(meas):
     """One sentence: how the points were weighed (std columns, a ``--noise`` model, or none: plain L2)."""
     if meas.std is None:
         return "Weights: none (the file has no std columns): the fit minimises the plain L2."
-    if "noise" in meas.metadata:
-        return (f"Weights: the noise model std = {meas.metadata['noise']} (`--noise`; the file has no std "
-                "columns).")
+    if meas.noise is not None:
+        relative, absolute = meas.noise
+        return (f"Weights: the noise model std = {relative:g} * value + {absolute:g} (`--noise`; the file has no "
+                "std columns).")
     return "Weights: the file's std columns."
 
 
