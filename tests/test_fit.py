@@ -701,6 +701,7 @@ def _tiny():
 @pytest.mark.slow
 def test_cli_fit_reports_its_check(tmp_path, capsys):
     """``jaxcos fit`` records the Jacobian's walks and the independent check, and the report explains the check."""
+    from jaxcos.inference._fit import POLISH_STEPS
     from jaxcos.io._measurements import save_measurements
 
     csv = tmp_path / "m.csv"
@@ -720,7 +721,10 @@ def test_cli_fit_reports_its_check(tmp_path, capsys):
     step = record["final_step"]
     assert step["check_before"]["walks"] == step["check_after"]["walks"] == 160
     assert record["check"] == (step["check_after"] if step["kept"] else step["check_before"])
-    assert "one damped Gauss-Newton step" in report and f"{step['check_before']['reduced_chi2']:.3f}" in report
+    # the steps' Jacobian from the fit's own walks; kept steps counted, at most POLISH_STEPS
+    assert step["jacobian_walks"] == 10 and step["kept"] == (step["steps"] > 0)
+    assert step["steps"] <= POLISH_STEPS
+    assert "damped Gauss-Newton steps" in report and f"{step['check_before']['reduced_chi2']:.3f}" in report
     # the screen's fixed starts, named by their index in the starts table (no near-mirror start: a broad highlight)
     assert record["fixed_starts"] == ["default", "broad tilted platelets"]
     assert "| start (0 = default, 1 = broad tilted platelets; screened unless said) |" in report
@@ -753,6 +757,50 @@ def test_gauss_newton_step_follows_the_pooled_residuals():
     assert float(other.loss(toward_other)) < float(other.loss(x))
     toward_own = gauss_newton_step(own, jac, np.asarray(own.model(x)), x)
     assert float(other.loss(toward_other)) < float(other.loss(toward_own))
+
+
+def test_polish_takes_steps_while_their_checks_are_better(monkeypatch):
+    """The polish checks its start afresh, then steps from where the last kept step ended, each on the pooled model
+    of that point's check with a Jacobian there from the fit's walks; the first step whose check is not better ends
+    it, and the record counts the kept ones."""
+    import types
+
+    import jaxcos.inference._fit as fitting
+
+    @dataclasses.dataclass(frozen=True)
+    class Objective:
+        walks: int = 1024
+        jacobian_walks: int = 128
+
+        def jacobian(self, x):
+            assert self.jacobian_walks == 1024  # the fit's own walks, not the refinements' few
+            return np.full((1, 1), float(x[0])), None
+
+    taken, keys = [], []
+
+    def fake_check(problem, meas, x, key, walks):
+        keys.append(key)
+        return types.SimpleNamespace(bound=next(bounds), walks=walks), np.full((1, 3), float(x[0]) + 0.5)
+
+    def fake_step(problem, jac, pooled, x):
+        taken.append((float(x[0]), float(jac[0, 0]), float(pooled[0, 0])))
+        return x + 1.0
+
+    monkeypatch.setattr(fitting, "_check", fake_check)
+    monkeypatch.setattr(fitting, "gauss_newton_step", fake_step)
+    start = types.SimpleNamespace(problem=Objective(), x=jnp.zeros(1))
+    # the fresh check of the start (100), then steps checked 90, 80 (kept) and 85 (not)
+    bounds = iter([100.0, 90.0, 80.0, 85.0, 70.0])
+    out = fitting.polish(start, None, jax.random.key(0), 16384, 1024)
+    assert taken == [(0.0, 0.0, 0.5), (1.0, 1.0, 1.5), (2.0, 2.0, 2.5)]
+    assert float(out.x[0]) == 2.0 and out.check.bound == 80.0 and out.step.check_before.bound == 100.0
+    assert out.step.kept and out.step.steps == 2 and out.step.check_after is out.check
+    assert out.step.jacobian_walks == 1024 and len({jax.random.key_data(k).tobytes() for k in keys}) == 4
+    # none kept: the start stays with its fresh check, the record holds the first step's
+    bounds, taken[:] = iter([100.0, 120.0]), []
+    out = fitting.polish(start, None, jax.random.key(0), 16384, 1024)
+    assert float(out.x[0]) == 0.0 and out.check.bound == 100.0 and not out.step.kept and out.step.steps == 0
+    assert out.step.check_after.bound == 120.0 and len(taken) == 1
 
 
 def test_gauss_newton_step_is_the_linear_least_squares_step():
@@ -1204,7 +1252,7 @@ def test_other_phase_moves_are_refined_only_where_the_fit_misses(monkeypatch, re
     problem = type("P", (), {})()
     start = F.RefinedStart(label="s", x=jnp.zeros(2), loss=1.0, steps=0, evaluations=0.0, problem=problem,
                            jacobian=None)
-    selection = F.Selection(checks=(_checked(reduced, se),), pooled=(np.zeros(3),))
+    selection = F.Selection(checks=(_checked(reduced, se),))
     pending = [F.PhaseMove(0.8, start, "one lobe", np.ones(2)), F.PhaseMove(0.9, start, "other lobes", np.ones(2))]
     refined_labels = []
 

@@ -113,26 +113,31 @@ def _finer_lines(r):
 
 
 def _final_step_lines(r):
-    """The report's account of the fit's last step (the polish stage of :func:`jaxcos.fit`; LM fits)."""
+    """The report's account of the fit's last steps (the polish stage of :func:`jaxcos.fit`; LM fits)."""
     step = r.final_step
     if step is None:
         return []
     before = step.check_before
-    lines = ["", "Then one damped Gauss-Newton step from that start, on the residuals of its check's pooled estimate "
-             f"({before.walks} walks, {before.walks // r.budget.walks} times the fit's, so that much less Monte "
-             "Carlo variance) with "
-             "the Jacobian the fit ended with: under its one key the fit also follows that key's Monte Carlo error, "
-             "and the step undoes part of it."]
+    lines = ["", "Then that start was checked again under fresh keys (the check that selected it leans towards the "
+             "data by its own luck), and damped Gauss-Newton steps were taken from it, each on the residuals of the "
+             f"last check's pooled estimate ({before.walks} walks, {before.walks // r.budget.walks} times the fit's, "
+             "so that much less Monte Carlo variance) with the Jacobian of the fit's objective from "
+             f"{step.jacobian_walks} walks: under its one key the fit also follows that key's Monte Carlo error, and "
+             "the steps undo part of it. Each step is checked under fresh keys and kept where it scores better; the "
+             "first one not kept ends them."]
     after = step.check_after
     if after is None:
-        return lines + ["The step was not finite and was not taken."]
+        return lines + ["The first step was not finite and was not taken."]
     reduced = before.reduced_chi2 is not None  # per degree of freedom where the file has std columns
     what = "reduced chi-square" if reduced else "chi-square"
     (a, a_se), (b, b_se) = [(c.reduced_chi2, c.reduced_chi2_se) if reduced else (c.material_chi2, c.material_chi2_se)
                             for c in (after, before)]
-    verdict = "It was kept; the fit is the stepped material." if step.kept else "It was not kept."
-    return lines + [f"Checked under fresh keys, the stepped material's {what} is {a:.3f} +- {a_se:.3f}, "
-                    f"against {b:.3f} +- {b_se:.3f} before the step. {verdict}"]
+    if not step.kept:
+        return lines + [f"Checked under fresh keys, the first stepped material's {what} is {a:.3f} +- {a_se:.3f}, "
+                        f"against {b:.3f} +- {b_se:.3f} before it. It was not kept."]
+    kept = "one step was" if step.steps == 1 else f"{step.steps} steps were"
+    return lines + [f"Checked under fresh keys, {kept} kept: the fitted material's {what} is {a:.3f} +- {a_se:.3f}, "
+                    f"against {b:.3f} +- {b_se:.3f} before the steps."]
 
 
 BRIGHT_FRACTION = 0.1
