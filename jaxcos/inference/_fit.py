@@ -142,7 +142,8 @@ FINE_SHARE = 0.05
 """The finer refinement runs only where the selected start's objective is this rough: its Monte Carlo
 share (:func:`objective_mc_share`) at least this fraction of the material's chi-square. Below it, four times
 the walks would change the objective by less than this fraction of itself (on the real Clarins 105 with an
-interface the share was 0.004, and the finer refinement cost 100 s and lost)."""
+interface the share was 0.004, and the finer refinement cost 100 s and lost). The polish's Gauss-Newton
+steps (:func:`polish`) run where the same share is at least this at the finally selected start."""
 _EPS = 1e-5
 INTERFACE_NAMES = ("eta", "alpha_s")
 """The parameters of a top interface (docs/model.md section 3a), fitted with ``interface=True``."""
@@ -2298,8 +2299,10 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
             ``False`` saves that time (nearly half of a fit) and keeps the
             best start at the fit's own walks.
         final_step: take the last Gauss-Newton steps on fresh checks' residuals
-            (LM; :func:`polish`). ``False`` keeps the minimum of the fixed-key
-            objective itself.
+            (LM; :func:`polish`), where the objective's Monte Carlo share at the
+            selected start is at least :data:`FINE_SHARE` (the steps undo that
+            key's pull; below it there is little to undo). ``False`` keeps the
+            minimum of the fixed-key objective itself.
         thin_after: the steps every walk of the refinements' objective (and
             so of their checks) makes, later steps made by fewer walks
             (:func:`~jaxcos.simulate`); ``None``: every walk makes every
@@ -2353,7 +2356,11 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         refined, selection, stage = refine_finer(refined, selection, problem, meas, method, budget,
                                                  jax.random.fold_in(key, FINE_STREAM), say)
     best = refined[selection.best]
-    if final_step and best.jacobian is not None:
+    share = objective_mc_share(selection.checks[selection.best], budget.walks)
+    if final_step and best.jacobian is not None and share < FINE_SHARE:
+        say(f"no Gauss-Newton steps: the Monte Carlo share of the objective at the best start is {share:.2g} of its "
+            f"chi-square (below {FINE_SHARE}), little for them to undo")
+    if final_step and best.jacobian is not None and share >= FINE_SHARE:
         say(f"checking the best start again under fresh keys and taking up to {POLISH_STEPS} Gauss-Newton steps on "
             f"the pooled residuals, each checked at {budget.check_walks} walks under fresh keys")
         polished = polish(best, meas, jax.random.fold_in(key, POLISH_STREAM), budget.check_walks, budget.walks)
