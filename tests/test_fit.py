@@ -1228,7 +1228,7 @@ def test_refine_phase_refines_the_best_move_of_each_kind_and_keeps_the_others(mo
     x = param.from_material(jaxcos.Material(layers=(jaxcos.Layer(**F._DEFAULT),)))
     n_moves = len(F.phase_moves(param, x)[0])
     problem = type("P", (), {"param": param})()
-    starts = [F.RefinedStart(label=name, x=x, loss=1.0, steps=0, evaluations=0.0, problem=problem, jacobian=None)
+    starts = [F.RefinedStart(label=name, x=x, loss=1.0, steps=0, evaluations=0.0, problem=problem)
               for name in ("a", "b")]
     # start a: its one-lobe move at 0.9 of its loss, its best other move (the 3rd) at 0.5;
     # start b: one lobe at 0.6 (the best one-lobe move), other moves no better than b itself
@@ -1250,8 +1250,7 @@ def test_other_phase_moves_are_refined_only_where_the_fit_misses(monkeypatch, re
     import jaxcos.inference._fit as F
 
     problem = type("P", (), {})()
-    start = F.RefinedStart(label="s", x=jnp.zeros(2), loss=1.0, steps=0, evaluations=0.0, problem=problem,
-                           jacobian=None)
+    start = F.RefinedStart(label="s", x=jnp.zeros(2), loss=1.0, steps=0, evaluations=0.0, problem=problem)
     selection = F.Selection(checks=(_checked(reduced, se),))
     pending = [F.PhaseMove(0.8, start, "one lobe", np.ones(2)), F.PhaseMove(0.9, start, "other lobes", np.ones(2))]
     refined_labels = []

@@ -1360,7 +1360,6 @@ class FinalStep:
 
     Attributes:
         damping: :data:`FINAL_DAMPING`.
-        kept: whether a step was kept.
         check_before: the check of the start, before any step.
         check_after: where a step was kept, the check of the last one kept (the fitted material's);
             else the first step's, or ``None`` where it was not finite (and so not taken).
@@ -1369,11 +1368,15 @@ class FinalStep:
     """
 
     damping: float
-    kept: bool
     check_before: CheckResult
     check_after: CheckResult | None
     steps: int = 0
     jacobian_walks: int = 0
+
+    @property
+    def kept(self):
+        """Whether a step was kept."""
+        return self.steps > 0
 
     def to_json(self):
         """The ``"final_step"`` object of a fit's record in ``params.json``."""
@@ -1758,7 +1761,6 @@ class RefinedStart:
         steps: solver steps (LM) or evaluations (Powell), over all passes.
         evaluations: forward evaluations at the objective's walks, a Jacobian counted at its cost.
         problem: the objective of its last pass (its weights and lobe probabilities).
-        jacobian: that objective's residuals' Jacobian ``(M, P)`` at ``x`` (LM), or ``None`` (Powell).
     """
 
     label: str
@@ -1767,7 +1769,6 @@ class RefinedStart:
     steps: int
     evaluations: float
     problem: Problem
-    jacobian: jnp.ndarray | None
 
 
 class Refiner:
@@ -1788,7 +1789,7 @@ class Refiner:
         self.stop = threading.Event()
 
     def __call__(self, label, x):
-        steps, evaluations, jac = 0, 0.0, None
+        steps, evaluations = 0, 0.0
         for _ in range(PASSES):
             if self.stop.is_set():
                 raise _Abandoned
@@ -1797,14 +1798,13 @@ class Refiner:
             if prob.param.interface:  # the boundary probability's candidates (quietest_boundary_probability)
                 evaluations += len(BOUNDARY_FACTORS) * self.per_value
             if self.method == "lm":
-                x, loss, n, accepted, jac = solve_lm(prob, x, jacobian=True)
+                x, loss, n, accepted = solve_lm(prob, x)
                 evaluations += n * self.per_value + accepted * self.per_jacobian
             else:
                 x, loss, n = solve_powell(prob, x)
                 evaluations += n * self.per_value
             steps += n
-        return RefinedStart(label=label, x=x, loss=loss, steps=steps, evaluations=evaluations, problem=prob,
-                            jacobian=jac)
+        return RefinedStart(label=label, x=x, loss=loss, steps=steps, evaluations=evaluations, problem=prob)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -2208,7 +2208,7 @@ def polish(start, meas, key, walks, jacobian_walks, steps=POLISH_STEPS):
         if not check_after.bound < last.bound:
             break
         x, last, pooled, kept = x_step, check_after, pooled_after, kept + 1
-    step = FinalStep(damping=FINAL_DAMPING, kept=kept > 0, check_before=check_before,
+    step = FinalStep(damping=FINAL_DAMPING, check_before=check_before,
                      check_after=last if kept else first_after, steps=kept,
                      jacobian_walks=_jacobian_walks(jac_problem))
     return Polished(x=x, check=last, step=step)
@@ -2356,15 +2356,15 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         refined, selection, stage = refine_finer(refined, selection, problem, meas, method, budget,
                                                  jax.random.fold_in(key, FINE_STREAM), say)
     best = refined[selection.best]
-    share = objective_mc_share(selection.checks[selection.best], budget.walks)
-    if final_step and best.jacobian is not None and share < FINE_SHARE:
-        say(f"no Gauss-Newton steps: the Monte Carlo share of the objective at the best start is {share:.2g} of its "
-            f"chi-square (below {FINE_SHARE}), little for them to undo")
-    if final_step and best.jacobian is not None and share >= FINE_SHARE:
-        say(f"checking the best start again under fresh keys and taking up to {POLISH_STEPS} Gauss-Newton steps on "
-            f"the pooled residuals, each checked at {budget.check_walks} walks under fresh keys")
-        polished = polish(best, meas, jax.random.fold_in(key, POLISH_STREAM), budget.check_walks, budget.walks)
-    else:
-        polished = Polished(x=best.x, check=selection.checks[selection.best], step=None)
+    polished = Polished(x=best.x, check=selection.checks[selection.best], step=None)
+    if final_step and method == "lm":
+        share = objective_mc_share(polished.check, budget.walks)
+        if share >= FINE_SHARE:
+            say(f"checking the best start again under fresh keys and taking up to {POLISH_STEPS} Gauss-Newton steps "
+                f"on the pooled residuals, each checked at {budget.check_walks} walks under fresh keys")
+            polished = polish(best, meas, jax.random.fold_in(key, POLISH_STREAM), budget.check_walks, budget.walks)
+        else:
+            say(f"no Gauss-Newton steps: the Monte Carlo share of the objective at the best start is {share:.2g} of "
+                f"its chi-square (below {FINE_SHARE}), little for them to undo")
     return summarise(meas, refined, selection, polished, method=method, variant=variant, seed=seed, budget=budget,
                      fixed=fixed, finer=stage, started=started)
