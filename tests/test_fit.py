@@ -1242,6 +1242,35 @@ def test_refine_phase_refines_the_best_move_of_each_kind_and_keeps_the_others(mo
     assert pending[0].ratio == pytest.approx(0.9)
 
 
+@pytest.mark.parametrize("stderr, noise_model, kept", [(0.01, False, ["a", "b"]), (0.2, False, ["a", "b", "c"]),
+                                                      (0.01, True, ["a", "b", "c"])])
+def test_phase_moves_leave_out_clearly_worse_starts_only_where_the_objective_is_their_misfit(stderr, noise_model,
+                                                                                            kept):
+    """movable_starts: without a noise model and with the best start's Monte Carlo share below FINE_SHARE, a start
+    whose loss on the best start's objective is above MOVE_LOSS_FACTOR times the best's is not moved; with a rough
+    objective (share 4 x 0.2^2 / 1 = 0.16 at stderr 0.2) or a noise model, every start is."""
+    import jaxcos.inference._fit as F
+
+    class Objective:  # the model at x is x itself, 4 values, the data 0: loss = sum x^2
+        scale, sigma = 1.0, jnp.ones(4)
+
+        def estimate(self, x):
+            return type("E", (), {"f": x, "stderr": jnp.full(4, stderr)})()
+
+        def weigh(self, model):
+            return model
+
+        def loss(self, x):
+            return jnp.sum(x * x)
+
+    problem = Objective()
+    # losses on the best's objective: a 1 (the best), b 1.2 (within 1.25 times), c 1.5
+    xs = {"a": jnp.full(4, 0.5), "b": jnp.full(4, np.sqrt(0.3)), "c": jnp.full(4, np.sqrt(0.375))}
+    starts = [F.RefinedStart(label=k, x=x, loss=float(jnp.sum(x * x)), steps=0, evaluations=0.0, problem=problem)
+              for k, x in xs.items()]
+    assert [r.label for r in F.movable_starts(starts, noise_model)] == kept
+
+
 @pytest.mark.parametrize("reduced, se, runs", [(1.1, 0.05, False), (2.05, 0.05, False), (2.5, 0.05, True),
                                                (40.0, 5.0, True)])
 def test_other_phase_moves_are_refined_only_where_the_fit_misses(monkeypatch, reduced, se, runs):

@@ -1983,18 +1983,54 @@ def _refine_moves(moves, refiner, say):
     return out
 
 
-def refine_phase(refined, refiner, say):
+MOVE_LOSS_FACTOR = 1.25
+"""Where the best refined start's objective is its material's misfit (:func:`movable_starts`), a start
+whose loss on that objective is more than this many times the best's is not moved: on the real Clarins 105
+under an interface (Monte Carlo share 0.005) ranking the moves of a start at 1.6 times the best's loss and
+refining two of them took 26 s of a 99 s fit, and both ended at 1.6 times again (docs/method.md, "The
+search")."""
+
+
+def movable_starts(refined, noise_model):
+    """The refined starts whose phase moves :func:`refine_phase` ranks.
+
+    All of them, except where the data have no noise model and the best
+    refined start's objective (the lowest loss) is its material's misfit,
+    its Monte Carlo share below :data:`FINE_SHARE` (the fixed key's variance
+    ``sum (scale s_mc / sigma)^2`` over the loss): every start is then
+    evaluated on that objective, where its loss is its misfit, and one more
+    than :data:`MOVE_LOSS_FACTOR` times the best's is left out. Where the
+    objective is rougher, a loss says little about a start's check (on
+    recovery sets a start at 6.5 times the best's loss held the winning
+    move), and with a noise model :func:`refine_missed` may need every
+    start's moves.
+    """
+    if noise_model or len(refined) < 2:
+        return refined
+    best = int(np.argmin([r.loss for r in refined]))
+    problem = refined[best].problem
+    est = problem.estimate(refined[best].x)
+    loss = float(jnp.sum(problem.weigh(problem.scale * est.f) ** 2))
+    mc = float(jnp.sum((problem.scale * est.stderr / problem.sigma) ** 2))
+    if not mc < FINE_SHARE * loss:
+        return refined
+    common = concurrently(lambda r: float(problem.loss(r.x)) if r is not refined[best] else loss, refined)
+    return [r for r, c in zip(refined, common) if c <= MOVE_LOSS_FACTOR * loss]
+
+
+def refine_phase(refined, refiner, say, noise_model=True):
     """The refine stage's last moves: refined starts with another diffuser phase function, refined where better.
 
     Of each kind of move (one lobe, other lobes), the one of
     :func:`best_phase_moves` that lowers its start's levelled loss most,
     relative to the start's own, is refined (:data:`PASSES` passes), and
     joins the refined starts for :func:`select` to judge (a loss under
-    another start's weights says little about the check). Returns the new
-    :class:`RefinedStart` of each, and the other starts' best moves, not
-    refined (:func:`refine_missed`).
+    another start's weights says little about the check). Only the moves of
+    :func:`movable_starts` are ranked (``noise_model``: whether the data
+    have one). Returns the new :class:`RefinedStart` of each, and the other
+    starts' best moves, not refined (:func:`refine_missed`).
     """
-    moves = best_phase_moves(refined)
+    moves = best_phase_moves(movable_starts(refined, noise_model))
     chosen = {}
     for m in moves:
         chosen.setdefault(m.name, m)
@@ -2055,7 +2091,7 @@ def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, sa
         else:
             say("the screen's best end is a start refined unscreened: no screened start refined besides")
         refined = [refiner(str(i), screened.ends[i]) for i in screened.order] + [u.result() for u in unscreened]
-        moved, pending = refine_phase(refined, refiner, say)
+        moved, pending = refine_phase(refined, refiner, say, noise_model=refiner.meas.std is not None)
         return refined + moved, pending
     finally:
         refiner.stop.set()  # an interrupted fit leaves its background starts after the pass they are in
