@@ -503,6 +503,26 @@ def test_highlight_tilt_between_the_viewing_directions():
     assert abs(highlight_tilt(meas) - 18.5) <= 1.0
 
 
+@pytest.mark.parametrize("alpha, narrow", [(0.006, True), (0.03, False), (0.1, False)])
+def test_a_highlight_seen_only_at_the_end_of_the_range(alpha, narrow):
+    """Platelets tilted by 29 degrees reflect at theta_o = theta_i + 58: at the range's last direction (78) for
+    theta_i 20, beyond it for the others, so no brightest point has neighbours on both sides. A narrow lobe's end
+    point stands hundreds of times above its neighbour: narrow, tilted 29 degrees (from that incidence alone;
+    the median over every incidence's end point said broad, 16.5). A broader lobe's rises a few times at most
+    (END_NARROW_RATIO): not narrow."""
+    ti = np.repeat([20.0, 30.0, 40.0, 50.0, 60.0, 70.0], 14)
+    to = np.tile(np.r_[np.arange(-40.0, 61.0, 10.0), 70.0, 75.0, 78.0], 6)
+    layer = jaxcos.Layer(t=16.0, c_d=0.8, albedo_d=0.9, g1=0.5, g2=0.0, w_g=1.0, albedo_p=0.8, alpha_p=alpha,
+                         theta_p=29.0)
+    est = jaxcos.simulate(jaxcos.Material(layers=(layer,)), jaxcos.make_query(ti, to), jax.random.key(0), walks=64,
+                          bounces=8)
+    meas = Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros_like(ti), values=np.pi * np.asarray(est.f, float),
+                        std=None, quantity="reflectance_factor", metadata={}, path="end.csv")
+    assert narrow_highlight(meas) == narrow
+    if narrow:
+        assert abs(highlight_tilt(meas) - 29.0) <= 0.5
+
+
 @pytest.mark.parametrize("alpha", [0.01, 0.03, 0.1])
 def test_highlight_width_bounds_the_lobe(alpha):
     """The width bound holds whatever the lobe's place between the sampled directions, and is tight on it.

@@ -114,6 +114,14 @@ NARROW_RATIO = 1.5
 """A highlight is narrower than the angular sampling (:func:`narrow_highlight`) when, in the median
 over incidences, its brightest point exceeds both neighbours by more than this factor (docs/method.md,
 "Near-mirror highlights")."""
+END_NARROW_RATIO = 10.0
+"""Where no incidence's brightest point has measured neighbours on both sides, one at an end of the range
+this many times its neighbour is a narrow highlight's (:func:`_peaks`). A GGX lobe falls from its peak to a
+viewing step ``d`` away by at most ``(1 + tan^2(d / 2) / alpha_p^2)^2`` (:func:`highlight_width`), so such a
+point bounds ``alpha_p`` below ``tan(d / 2) / 1.47``, a third of what :data:`NARROW_RATIO` bounds between
+two neighbours; on the recovery sets whose highlight lay at the range's end, broad lobes (``alpha_p``
+0.056-0.113) rose 1.8-2.5 times over the last step, and one of ``alpha_p`` 0.006, seen at one incidence,
+342 times (benchmarks/RESULTS.md, "The search on random materials")."""
 SURFACE_GROWTH = 2.0
 """The measured gloss is a surface's (:func:`gloss_growth`) when it grows with incidence this many times
 faster than single scattering in a medium of diffusers: 2.6 times on the real Clarins 105 (Dewy 1); at
@@ -1046,14 +1054,17 @@ def _vertex(x, v):
 
 
 def _peaks(meas):
-    """The :func:`_highlights` with a measured neighbour on both sides, or all of them where none has one.
+    """The :func:`_highlights` with a measured neighbour on both sides; where none has one, those at an end of the
+    range that exceed their neighbour more than :data:`END_NARROW_RATIO` times, or all of them where none does.
 
     A brightest point at an end of the measured range says little of where
     the lobe peaks (it may lie beyond the range) or how narrow it is (its one
-    neighbour may be on the lobe's rising side).
+    neighbour may be on the lobe's rising side), unless it stands far above
+    that neighbour: then the lobe is narrow and peaks within about a viewing step of it.
     """
     highlights = _highlights(meas)
-    return [h for h in highlights if h.interior] or highlights
+    return ([h for h in highlights if h.interior] or [h for h in highlights if h.ratio > END_NARROW_RATIO]
+            or highlights)
 
 
 def highlight_tilt(meas):
