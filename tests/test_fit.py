@@ -721,7 +721,7 @@ def _tiny():
 @pytest.mark.slow
 def test_cli_fit_reports_its_check(tmp_path, capsys):
     """``jaxcos fit`` records the Jacobian's walks and the independent check, and the report explains the check."""
-    from jaxcos.inference._fit import POLISH_STEPS
+    from jaxcos.inference._fit import POLISH_JACOBIAN_FACTOR, POLISH_STEPS
     from jaxcos.io._measurements import save_measurements
 
     csv = tmp_path / "m.csv"
@@ -741,8 +741,8 @@ def test_cli_fit_reports_its_check(tmp_path, capsys):
     step = record["final_step"]
     assert step["check_before"]["walks"] == step["check_after"]["walks"] == 160
     assert record["check"] == (step["check_after"] if step["kept"] else step["check_before"])
-    # the steps' Jacobian from the fit's own walks; kept steps counted, at most POLISH_STEPS
-    assert step["jacobian_walks"] == 10 and step["kept"] == (step["steps"] > 0)
+    # the steps' Jacobian from POLISH_JACOBIAN_FACTOR times the fit's walks; kept steps counted, at most POLISH_STEPS
+    assert step["jacobian_walks"] == POLISH_JACOBIAN_FACTOR * 10 and step["kept"] == (step["steps"] > 0)
     assert step["steps"] <= POLISH_STEPS
     assert "damped Gauss-Newton steps" in report and f"{step['check_before']['reduced_chi2']:.3f}" in report
     # the screen's fixed starts, named by their index in the starts table (no near-mirror start: a broad highlight)
@@ -780,9 +780,9 @@ def test_gauss_newton_step_follows_the_pooled_residuals():
 
 
 def test_polish_takes_steps_while_their_checks_are_better(monkeypatch):
-    """The polish checks its start afresh, then steps from where the last kept step ended, each on the pooled model
-    of that point's check with a Jacobian there from the fit's walks; the first step whose check is not better ends
-    it, and the record counts the kept ones."""
+    """The polish checks its start afresh, takes one Jacobian there from the walks it is given, then steps from where
+    the last kept step ended, each on the pooled model of that point's check; the first step whose check is not
+    better ends it, and the record counts the kept ones."""
     import types
 
     import jaxcos.inference._fit as fitting
@@ -793,10 +793,11 @@ def test_polish_takes_steps_while_their_checks_are_better(monkeypatch):
         jacobian_walks: int = 128
 
         def jacobian(self, x):
-            assert self.jacobian_walks == 1024  # the fit's own walks, not the refinements' few
-            return np.full((1, 1), float(x[0])), None
+            assert self.walks == self.jacobian_walks == 8192  # the walks given, not the refinements' few
+            jacobians.append(float(x[0]))
+            return np.full((1, 1), float(x[0]) + 7.0), None
 
-    taken, keys = [], []
+    taken, keys, jacobians = [], [], []
 
     def fake_check(problem, meas, x, key, walks):
         keys.append(key)
@@ -811,16 +812,21 @@ def test_polish_takes_steps_while_their_checks_are_better(monkeypatch):
     start = types.SimpleNamespace(problem=Objective(), x=jnp.zeros(1))
     # the fresh check of the start (100), then steps checked 90, 80 (kept) and 85 (not)
     bounds = iter([100.0, 90.0, 80.0, 85.0, 70.0])
-    out = fitting.polish(start, None, jax.random.key(0), 16384, 1024)
-    assert taken == [(0.0, 0.0, 0.5), (1.0, 1.0, 1.5), (2.0, 2.0, 2.5)]
+    out = fitting.polish(start, None, jax.random.key(0), 16384, 8192)
+    assert jacobians == [0.0]  # one Jacobian, at the start
+    assert taken == [(0.0, 7.0, 0.5), (1.0, 7.0, 1.5), (2.0, 7.0, 2.5)]
     assert float(out.x[0]) == 2.0 and out.check.bound == 80.0 and out.step.check_before.bound == 100.0
     assert out.step.kept and out.step.steps == 2 and out.step.check_after is out.check
-    assert out.step.jacobian_walks == 1024 and len({jax.random.key_data(k).tobytes() for k in keys}) == 4
+    assert out.step.jacobian_walks == 8192 and len({jax.random.key_data(k).tobytes() for k in keys}) == 4
     # none kept: the start stays with its fresh check, the record holds the first step's
     bounds, taken[:] = iter([100.0, 120.0]), []
-    out = fitting.polish(start, None, jax.random.key(0), 16384, 1024)
+    out = fitting.polish(start, None, jax.random.key(0), 16384, 8192)
     assert float(out.x[0]) == 0.0 and out.check.bound == 100.0 and not out.step.kept and out.step.steps == 0
     assert out.step.check_after.bound == 120.0 and len(taken) == 1
+    # at most POLISH_STEPS steps, however many are better
+    bounds, taken[:] = iter(100.0 - np.arange(20.0)), []
+    out = fitting.polish(start, None, jax.random.key(0), 16384, 8192)
+    assert out.step.steps == fitting.POLISH_STEPS == len(taken)
 
 
 def test_gauss_newton_step_is_the_linear_least_squares_step():

@@ -85,9 +85,16 @@ pooled residuals of the best start's check, each kept where a check of its own, 
 better. Under one fixed key the fit follows that key's Monte Carlo error; the check's pooled model has
 ``1 / CHECK_FACTOR`` of its variance. Undamped, the step runs along directions the data hardly constrain
 (docs/method.md, "The last steps")."""
-POLISH_STEPS = 3
+POLISH_STEPS = 5
 """At most this many Gauss-Newton steps in the polish stage (:func:`polish`); it stops at the first one its
 check does not keep."""
+POLISH_JACOBIAN_FACTOR = 8
+"""The polish's Jacobian (:func:`polish`) is taken once, at the checked start, from this many times the fit's
+walks. Where the objective is rough its columns along the parameters that move directions are rough too: at
+the fit's 1024 walks, on a recovery set of narrow platelets (seed 8's set 21), the ``g1`` column's cosine with
+the 8192-walk one was 0.64 (``alpha_p`` 0.70, ``c_d`` 0.86), and steps along it checked no better; along the
+8192-walk one three steps took the check from 2.25 to 1.35 per degree of freedom (the truth: 1.12;
+benchmarks/RESULTS.md, "Dewy2 and the final step")."""
 CHECK_BATCHES = 16
 """The check's walks run in this many batches under independent keys: pairs of batches estimate
 the material's chi-square and its standard error (:func:`_pair_chi2`)."""
@@ -1375,7 +1382,7 @@ class FinalStep:
         check_after: where a step was kept, the check of the last one kept (the fitted material's);
             else the first step's, or ``None`` where it was not finite (and so not taken).
         steps: the steps kept, at most :data:`POLISH_STEPS`.
-        jacobian_walks: the walks of each step's Jacobian.
+        jacobian_walks: the walks of the steps' one Jacobian, taken at the start.
     """
 
     damping: float
@@ -2235,19 +2242,20 @@ def polish(start, meas, key, walks, jacobian_walks, steps=POLISH_STEPS):
     degree of freedom, no better; on fresh ones 1.7-2.8 in each of thirteen
     tries: docs/method.md, "The last steps"). Each step
     (:func:`gauss_newton_step`, :data:`FINAL_DAMPING`) starts where the last
-    kept one ended, on the pooled model of that point's check, with the
-    Jacobian of ``start``'s objective there from its first
-    ``jacobian_walks`` walks (the fit's own: the refinements' few-walk
-    Jacobian is the slope of a rough objective, and a step along it rarely
-    checked better there). Step ``k``'s check, under ``fold_in(key, k)``,
+    kept one ended, on the pooled model of that point's check, with one
+    Jacobian of ``start``'s objective, taken at ``start`` from the first
+    ``jacobian_walks`` walks of its key (the fit's: :data:`POLISH_JACOBIAN_FACTOR`
+    times its walks; the refinements' few-walk Jacobian is the slope of a
+    rough objective, and a step along it rarely checked better). Step ``k``'s check, under ``fold_in(key, k)``,
     keeps it where its bound is lower than the last kept one's; the stage
     stops at the first step not kept, or after ``steps``.
     """
     check_before, pooled = _check(start.problem, meas, start.x, jax.random.fold_in(key, 0), walks)
-    jac_problem = dataclasses.replace(start.problem, jacobian_walks=jacobian_walks)
+    jac_problem = dataclasses.replace(start.problem, walks=jacobian_walks, jacobian_walks=jacobian_walks)
+    jac = jac_problem.jacobian(start.x)[0]
     x, last, first_after, kept = start.x, check_before, None, 0
     for k in range(1, steps + 1):
-        x_step = gauss_newton_step(start.problem, jac_problem.jacobian(x)[0], pooled, x)
+        x_step = gauss_newton_step(start.problem, jac, pooled, x)
         if not np.all(np.isfinite(np.asarray(x_step))):
             break
         check_after, pooled_after = _check(start.problem, meas, x_step, jax.random.fold_in(key, k), walks)
@@ -2409,7 +2417,8 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
         if share >= FINE_SHARE:
             say(f"checking the best start again under fresh keys and taking up to {POLISH_STEPS} Gauss-Newton steps "
                 f"on the pooled residuals, each checked at {budget.check_walks} walks under fresh keys")
-            polished = polish(best, meas, jax.random.fold_in(key, POLISH_STREAM), budget.check_walks, budget.walks)
+            polished = polish(best, meas, jax.random.fold_in(key, POLISH_STREAM), budget.check_walks,
+                              POLISH_JACOBIAN_FACTOR * budget.walks)
         else:
             say(f"no Gauss-Newton steps: the Monte Carlo share of the objective at the best start is {share:.2g} of "
                 f"its chi-square (below {FINE_SHARE}), little for them to undo")
