@@ -2246,8 +2246,8 @@ def polish(start, meas, key, walks, jacobian_walks, steps=POLISH_STEPS):
     Jacobian of ``start``'s objective, taken at ``start`` from the first
     ``jacobian_walks`` walks of its key (the fit's: :data:`POLISH_JACOBIAN_FACTOR`
     times its walks; the refinements' few-walk Jacobian is the slope of a
-    rough objective, and a step along it rarely checked better). Step ``k``'s check, under ``fold_in(key, k)``,
-    keeps it where its bound is lower than the last kept one's; the stage
+    rough objective, and a step along it rarely checked better). Step
+    ``k``'s check, under ``fold_in(key, k)``, keeps it where its bound is lower than the last kept one's; the stage
     stops at the first step not kept, or after ``steps``.
     """
     check_before, pooled = _check(start.problem, meas, start.x, jax.random.fold_in(key, 0), walks)
