@@ -2014,8 +2014,8 @@ def movable_starts(refined, noise_model):
 
     All of them, except where the data have no noise model and the best
     refined start's objective (the lowest loss) is its material's misfit,
-    its Monte Carlo share below :data:`FINE_SHARE` (the fixed key's variance
-    ``sum (scale s_mc / sigma)^2`` over the loss): every start is then
+    its Monte Carlo share below :data:`FINE_SHARE` (the fixed key's variance,
+    :func:`_mc_chi2`, over the loss): every start is then
     evaluated on that objective, where its loss is its misfit, and one more
     than :data:`MOVE_LOSS_FACTOR` times the best's is left out. Where the
     objective is rougher, a loss says little about a start's check (on
@@ -2029,7 +2029,7 @@ def movable_starts(refined, noise_model):
     problem = refined[best].problem
     est = problem.estimate(refined[best].x)
     loss = float(jnp.sum(problem.weigh(problem.scale * est.f) ** 2))
-    mc = float(jnp.sum((problem.scale * est.stderr / problem.sigma) ** 2))
+    mc = float(_mc_chi2(problem, est))
     if not mc < FINE_SHARE * loss:
         return refined
     common = concurrently(lambda r: float(problem.loss(r.x)) if r is not refined[best] else loss, refined)
