@@ -299,6 +299,7 @@ def run_set(args, index):
         interface=dict(truth=_interface(truth), fitted=_interface(result.material)) if args.interface else None,
         starts=[dict(label=s.label, loss=s.loss, material_chi2=s.material_chi2) for s in result.starts],
         fixed_starts=list(result.record.fixed_starts), connection=result.record.connection,
+        final_step=None if result.record.final_step is None else result.record.final_step.to_json(),
     )
     append_record(args.out, record)
     return record

@@ -721,7 +721,7 @@ def _tiny():
 @pytest.mark.slow
 def test_cli_fit_reports_its_check(tmp_path, capsys):
     """``jaxcos fit`` records the Jacobian's walks and the independent check, and the report explains the check."""
-    from jaxcos.inference._fit import POLISH_JACOBIAN_FACTOR, POLISH_STEPS
+    from jaxcos.inference._fit import POLISH_JACOBIAN_FACTOR, POLISH_ROUNDS, POLISH_STEPS
     from jaxcos.io._measurements import save_measurements
 
     csv = tmp_path / "m.csv"
@@ -741,9 +741,10 @@ def test_cli_fit_reports_its_check(tmp_path, capsys):
     step = record["final_step"]
     assert step["check_before"]["walks"] == step["check_after"]["walks"] == 160
     assert record["check"] == (step["check_after"] if step["kept"] else step["check_before"])
-    # the steps' Jacobian from POLISH_JACOBIAN_FACTOR times the fit's walks; kept steps counted, at most POLISH_STEPS
+    # the steps' Jacobians from POLISH_JACOBIAN_FACTOR times the fit's walks; kept steps counted, at most
+    # POLISH_STEPS along each of at most POLISH_ROUNDS
     assert step["jacobian_walks"] == POLISH_JACOBIAN_FACTOR * 10 and step["kept"] == (step["steps"] > 0)
-    assert step["steps"] <= POLISH_STEPS
+    assert step["steps"] <= POLISH_STEPS * step["jacobians"] and 1 <= step["jacobians"] <= POLISH_ROUNDS
     assert "damped Gauss-Newton steps" in report and f"{step['check_before']['reduced_chi2']:.3f}" in report
     # the screen's fixed starts, named by their index in the starts table (no near-mirror start: a broad highlight)
     assert record["fixed_starts"] == ["default", "broad tilted platelets"]
@@ -780,9 +781,10 @@ def test_gauss_newton_step_follows_the_pooled_residuals():
 
 
 def test_polish_takes_steps_while_their_checks_are_better(monkeypatch):
-    """The polish checks its start afresh, takes one Jacobian there from the walks it is given, then steps from where
-    the last kept step ended, each on the pooled model of that point's check; the first step whose check is not
-    better ends it, and the record counts the kept ones."""
+    """The polish checks its start afresh, then steps in rounds, each along one Jacobian taken where the round begins
+    from the walks it is given; each step starts where the last kept one ended, on the pooled model of that point's
+    check; the first step whose check is not better ends a round, and a round that kept none ends the polish. The
+    record counts the kept steps and the Jacobians."""
     import types
 
     import jaxcos.inference._fit as fitting
@@ -810,23 +812,27 @@ def test_polish_takes_steps_while_their_checks_are_better(monkeypatch):
     monkeypatch.setattr(fitting, "_check", fake_check)
     monkeypatch.setattr(fitting, "gauss_newton_step", fake_step)
     start = types.SimpleNamespace(problem=Objective(), x=jnp.zeros(1))
-    # the fresh check of the start (100), then steps checked 90, 80 (kept) and 85 (not)
-    bounds = iter([100.0, 90.0, 80.0, 85.0, 70.0])
+    # the fresh check of the start (100); along the first Jacobian steps checked 90, 80 (kept) and 85 (not); along
+    # the second, taken at the last kept point, 75 (kept) and 78 (not); along the third 79 (not): the end
+    bounds = iter([100.0, 90.0, 80.0, 85.0, 75.0, 78.0, 79.0])
     out = fitting.polish(start, None, jax.random.key(0), 16384, 8192)
-    assert jacobians == [0.0]  # one Jacobian, at the start
-    assert taken == [(0.0, 7.0, 0.5), (1.0, 7.0, 1.5), (2.0, 7.0, 2.5)]
-    assert float(out.x[0]) == 2.0 and out.check.bound == 80.0 and out.step.check_before.bound == 100.0
-    assert out.step.kept and out.step.steps == 2 and out.step.check_after is out.check
-    assert out.step.jacobian_walks == 8192 and len({jax.random.key_data(k).tobytes() for k in keys}) == 4
-    # none kept: the start stays with its fresh check, the record holds the first step's
-    bounds, taken[:] = iter([100.0, 120.0]), []
+    assert jacobians == [0.0, 2.0, 3.0]
+    assert taken == [(0.0, 7.0, 0.5), (1.0, 7.0, 1.5), (2.0, 7.0, 2.5),
+                     (2.0, 9.0, 2.5), (3.0, 9.0, 3.5), (3.0, 10.0, 3.5)]
+    assert float(out.x[0]) == 3.0 and out.check.bound == 75.0 and out.step.check_before.bound == 100.0
+    assert out.step.kept and out.step.steps == 3 and out.step.jacobians == 3 and out.step.check_after is out.check
+    assert out.step.jacobian_walks == 8192 and len({jax.random.key_data(k).tobytes() for k in keys}) == 7
+    # none kept: the start stays with its fresh check, the record holds the first step's; one Jacobian
+    bounds, taken[:], jacobians[:] = iter([100.0, 120.0]), [], []
     out = fitting.polish(start, None, jax.random.key(0), 16384, 8192)
     assert float(out.x[0]) == 0.0 and out.check.bound == 100.0 and not out.step.kept and out.step.steps == 0
-    assert out.step.check_after.bound == 120.0 and len(taken) == 1
-    # at most POLISH_STEPS steps, however many are better
-    bounds, taken[:] = iter(100.0 - np.arange(20.0)), []
+    assert out.step.check_after.bound == 120.0 and len(taken) == 1 and out.step.jacobians == len(jacobians) == 1
+    # at most POLISH_STEPS steps along each of at most POLISH_ROUNDS Jacobians, however many are better
+    bounds, taken[:], jacobians[:] = iter(100.0 - np.arange(40.0)), [], []
     out = fitting.polish(start, None, jax.random.key(0), 16384, 8192)
-    assert out.step.steps == fitting.POLISH_STEPS == len(taken)
+    assert out.step.steps == fitting.POLISH_STEPS * fitting.POLISH_ROUNDS == len(taken)
+    assert out.step.jacobians == len(jacobians) == fitting.POLISH_ROUNDS
+    assert jacobians == [fitting.POLISH_STEPS * i for i in range(fitting.POLISH_ROUNDS)]
 
 
 def test_gauss_newton_step_is_the_linear_least_squares_step():

@@ -121,10 +121,11 @@ def _final_step_lines(r):
     lines = ["", "Then that start was checked again under fresh keys (the check that selected it leans towards the "
              "data by its own luck), and damped Gauss-Newton steps were taken from it, each on the residuals of the "
              f"last check's pooled estimate ({before.walks} walks, {before.walks // r.budget.walks} times the fit's, "
-             "so that much less Monte Carlo variance) with one Jacobian of the fit's objective, taken at that start "
-             f"from {step.jacobian_walks} walks: under its one key the fit also follows that key's Monte Carlo error, "
+             "so that much less Monte Carlo variance) along a Jacobian of the fit's objective from "
+             f"{step.jacobian_walks} walks: under its one key the fit also follows that key's Monte Carlo error, "
              "and the steps undo part of it. Each step is checked under fresh keys and kept where it scores better; "
-             "the first one not kept ends them."]
+             "the first one not kept ends the steps along that Jacobian, and where they kept one, a new Jacobian is "
+             f"taken where they ended ({step.jacobians} Jacobian{'s' * (step.jacobians > 1)} taken)."]
     after = step.check_after
     if after is None:
         return lines + ["The first step was not finite and was not taken."]
