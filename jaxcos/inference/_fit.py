@@ -2265,10 +2265,9 @@ def polish(start, meas, key, walks, jacobian_walks, steps=POLISH_STEPS, rounds=P
     """
     check_before, pooled = _check(start.problem, meas, start.x, jax.random.fold_in(key, 0), walks)
     jac_problem = dataclasses.replace(start.problem, walks=jacobian_walks, jacobian_walks=jacobian_walks)
-    x, last, first_after, kept, jacobians, k = start.x, check_before, None, 0, 0, 0
-    while jacobians < rounds:
-        jac = jac_problem.jacobian(x)[0]
-        jacobians, kept_before = jacobians + 1, kept
+    x, last, first_after, kept, k = start.x, check_before, None, 0, 0
+    for jacobians in range(1, rounds + 1):
+        jac, kept_before = jac_problem.jacobian(x)[0], kept
         for _ in range(steps):
             k += 1
             x_step = gauss_newton_step(start.problem, jac, pooled, x)
