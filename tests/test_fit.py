@@ -637,7 +637,7 @@ def test_a_fit_reports_its_lobes_forward_first():
     """Started with the lobes the other way round, a two-lobe fit still reports the more forward one first."""
     crossed = jaxcos.Material(layers=(jaxcos.Layer(t=16.0, c_d=0.7, albedo_d=0.8, g1=-0.3, g2=0.5, w_g=0.4,
                                                    albedo_p=0.8, alpha_p=0.2, theta_p=2.0),))
-    result = fit(_tiny(), walks=16, bounces=8, jacobian_walks=8, seed=SEED, start=crossed, finer=False,
+    result = fit(_small(), walks=16, bounces=8, jacobian_walks=8, seed=SEED, start=crossed, finer=False,
                  final_step=False)
     layer = result.material.layers[0]
     assert float(layer.g1) >= float(layer.g2)
@@ -716,6 +716,15 @@ def _tiny():
     values = np.full((3, 3), 0.2)
     return Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros(3), values=values, std=np.full((3, 3), 0.01),
                         quantity="reflectance_factor", metadata={}, path="tiny.csv")
+
+
+def _small():
+    """Five points, 15 values: the fewest that a two-lobe fit (12 parameters) or a single-lobe one under an interface
+    (12) is run on (:func:`jaxcos.inference._fit.check_determined`)."""
+    ti = np.array([20.0, 20.0, 20.0, 50.0, 50.0])
+    to = np.array([-10.0, 20.0, 40.0, 0.0, 50.0])
+    return Measurements(theta_i=ti, theta_o=to, phi_o=np.zeros(5), values=np.full((5, 3), 0.2),
+                        std=np.full((5, 3), 0.01), quantity="reflectance_factor", metadata={}, path="small.csv")
 
 
 @pytest.mark.slow
@@ -990,6 +999,27 @@ def test_bad_file_is_a_clear_error(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_fewer_values_than_parameters_is_refused(tmp_path, capsys):
+    """Three points (nine values) do not determine the twelve parameters of a two-lobe fit, nor the ten of a
+    single-lobe one: ``fit``, ``uncertainty`` and ``ablate`` refuse them in one sentence before any work, and write
+    nothing. Five platelet parameters are determined by them (tested by its check alone: no fit runs)."""
+    from jaxcos.inference._fit import check_determined
+
+    csv = tmp_path / "few.csv"
+    csv.write_text("theta_i,theta_o,r,g,b\n20,10,0.7,0.7,0.7\n20,20,0.8,0.8,0.8\n20,30,0.9,0.9,0.9\n")
+    for command, extra, option in (("fit", [], "--variant"), ("uncertainty", [], "--variant"),
+                                   ("ablate", ["--variants", "single_lobe,two_lobe"], "--variants")):
+        out = tmp_path / command
+        assert main([command, str(csv), "--out", str(out)] + extra) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and str(csv) in err and "9 measured values (3 points" in err, err
+        assert option in err and not out.exists()
+    meas = jaxcos.load_measurements(str(csv))
+    check_determined(meas, 5, "platelets_only")
+    with pytest.raises(InputError, match="9 measured values .* 9 fitted parameters"):
+        check_determined(meas, 9, "a model")
+
+
 def test_existing_result_is_not_overwritten(tmp_path, capsys):
     out = tmp_path / "fit"
     out.mkdir()
@@ -1135,7 +1165,7 @@ def test_fit_with_interface_writes_it(tmp_path):
     """`fit(interface=True)` returns a material with an interface; params.json carries it, the report names it."""
     import jaxcos.inference._fit as fitting
 
-    meas = _tiny()
+    meas = _small()
     result = fit(meas, variant="single_lobe", walks=16, bounces=8, jacobian_walks=8, starts=1, interface=True,
                  final_step=False, finer=False)
     assert result.material.interface is not None and result.record.finer is None

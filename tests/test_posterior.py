@@ -439,6 +439,11 @@ def test_report_names_unresolved_parameters_behind_a_laplace_disagreement():
     assert "not Gaussian" in notes["b"]
     notes = {n.split("`")[1]: n for n in _laplace_notes(post([]))}
     assert "not Gaussian" in notes["a"]
+    # a fixed by u (correlation 1: a singular covariance, as from fewer values than parameters): nothing is left
+    # of a's sd with u held, and the note is the plain one, not a division by that zero
+    cov[:] = 0.01 * np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    notes = {n.split("`")[1]: n for n in _laplace_notes(post(["u"]))}
+    assert "not Gaussian" in notes["a"]
 
 
 def test_mean_cosine_is_the_first_moment_of_the_diffuser_mixture():

@@ -44,7 +44,8 @@ def _cmd(args):
     post = uncertainty(meas, start, seed=args.seed, walkers=args.walkers, max_steps=args.steps, progress=say)
     paths = write_uncertainty(post, meas, args.out, force=args.force)
     worst = min(post.summary, key=lambda k: post.summary[k]["ess"])
-    print(f"sampled {post.chain.walkers} walkers x {post.chain.steps} steps in {post.record.sampling_time_s:.0f} s: "
+    print(f"sampled {post.chain.walkers} walkers x {post.chain.steps} steps in {post.record.sampling_time_s:.1f} s "
+          f"({post.record.time_s:.0f} s in all): "
           f"chain {post.record.chain_in_tau:.1f} autocorrelation times long, smallest effective sample size "
           f"{post.summary[worst]['ess']:.0f} ({worst}). Wrote {', '.join(paths)}.")
     if not post.converged:

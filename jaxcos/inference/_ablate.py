@@ -93,7 +93,7 @@ import numpy as np
 from .._errors import InputError
 from ..io import Measurements, load_measurements
 from ..model import ABLATION_BUDGET, with_variant
-from ._fit import fit, fit_statistics, parameterization
+from ._fit import check_determined, fit, fit_statistics, parameterization
 from ._kubelka_munk import KM_N_PARAMS, fit_kubelka_munk
 
 ABLATION_VARIANTS = ("diffusers_only", "platelets_only", "single_lobe", "two_lobe", "kubelka_munk")
@@ -416,6 +416,10 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
         if names.count(name) > 1:
             raise InputError(f"{name}: the file is given twice.")
     measurements = [m for m, _ in loaded]
+    for meas in measurements:  # before any fit: each variant needs more values than parameters
+        for entry in table:
+            variant, top = split_variant(entry)
+            check_determined(meas, n_params(entry), variant + " with a top interface" * top, "--variants")
     say = progress or (lambda msg: None)
     t_start = time.perf_counter()
     load_start = _load_average()

@@ -1612,6 +1612,28 @@ def _l2_rmse(resid):
     return dict(l2=float(np.sum(resid ** 2)), rmse=float(np.sqrt(np.mean(resid ** 2))))
 
 
+def measured_values(meas):
+    """The number of measured values of ``meas``: three per point, the padded points (infinite std) left out."""
+    if meas.std is None:
+        return int(np.size(meas.values))
+    return int(np.sum(np.isfinite(meas.std)))
+
+
+def check_determined(meas, n_free, model, option="--variant"):
+    """Raise :class:`InputError` unless ``meas`` has more measured values than ``model``'s ``n_free`` fitted parameters.
+
+    With as many parameters as values, or more, a least-squares fit has no
+    degrees of freedom: its minimum is not unique, and its reduced chi-square
+    and posterior spreads are undefined. ``option``: the command-line option
+    that chooses the variants, named in the message.
+    """
+    n = measured_values(meas)
+    if n <= n_free:
+        raise InputError(f"{meas.path}: {n} measured values ({n // 3} point{'s' * (n // 3 != 1)} x 3 channels) for "
+                         f"the {n_free} fitted parameters of {model}; a fit needs more values than parameters, so "
+                         f"measure more geometries or fit a variant with fewer parameters ({option}).")
+
+
 def fit_statistics(meas, model, loss, n_free):
     """``loss``, ``l2``, ``rmse``, ``n_points`` and, with std columns, ``reduced_chi2`` and ``reduced_chi2_noise_only``.
 
@@ -2399,6 +2421,7 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
     if thin_after == "auto":
         thin_after = INTERFACE_THIN_AFTER if interface else None
     param = parameterization(variant, fit_t=fit_t, fit_phi=fit_phi, interface=interface, template=template)
+    check_determined(meas, param.size, variant + " with a top interface" * bool(interface))
     key = jax.random.key(seed)
     x_default = param.from_material(template)
     budget = Budget.of(walks, bounces, jacobian_walks)

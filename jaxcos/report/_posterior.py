@@ -41,15 +41,16 @@ def _json_safe(x):
 
 
 def _held_sd(post, name):
-    """The Laplace sd of ``name`` with the unresolved parameters held (``None`` where there are none):
-    ``sqrt(S_nn - S_nu S_uu^-1 S_un)`` of the Laplace covariance ``S``, ``u`` the unresolved."""
+    """The Laplace sd of ``name`` with the unresolved parameters held: ``sqrt(S_nn - S_nu S_uu^-1 S_un)`` of the
+    Laplace covariance ``S``, ``u`` the unresolved. ``None`` where there are none, or where that variance is not
+    positive (``name`` a function of the unresolved ones, as where the data have fewer values than parameters)."""
     if not post.record.unresolved:
         return None
     cov = np.asarray(post.laplace_cov, float)
     u = [post.labels.index(n) for n in post.record.unresolved]
     i = post.labels.index(name)
     var = cov[i, i] - cov[i, u] @ np.linalg.lstsq(cov[np.ix_(u, u)], cov[u, i], rcond=None)[0]
-    return float(np.sqrt(max(var, 0.0)))
+    return float(np.sqrt(var)) if var > 0 else None
 
 
 def _laplace_notes(post):
