@@ -48,7 +48,8 @@ def fit_options(args):
     noise = parse_noise(args.noise) if args.noise is not None else None
     return dict(variant=args.variant, method=args.method, seed=args.seed, walks=walks, bounces=bounces,
                 jacobian_walks=min(args.jacobian_walks, walks), starts=args.starts, fit_t=args.fit_t,
-                fit_phi=args.fit_phi, start=args.start, t=args.t, interface=args.interface, noise=noise, finer=not args.no_finer)
+                fit_phi=args.fit_phi, start=args.start, t=args.t, interface=args.interface, noise=noise,
+                finer=not args.no_finer)
 
 
 def fit_file(path, out, options, *, force=False, progress=None):

@@ -418,8 +418,7 @@ def ablate(measurements_list, variants=ABLATION_VARIANTS, *, seed=0, walks=ABLAT
     measurements = [m for m, _ in loaded]
     for meas in measurements:  # before any fit: each variant needs more values than parameters
         for entry in table:
-            variant, top = split_variant(entry)
-            check_determined(meas, n_params(entry), variant + " with a top interface" * top, "--variants")
+            check_determined(meas, n_params(entry), entry, "--variants")
     say = progress or (lambda msg: None)
     t_start = time.perf_counter()
     load_start = _load_average()
