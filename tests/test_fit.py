@@ -1121,9 +1121,10 @@ def test_finer_refinement_joins_the_starts_and_wins_only_on_its_check():
     ("single_lobe", False, 0.02, "mis"), ("single_lobe", False, 0.3, "nee"), ("diffusers_only", False, 0.02, "nee"),
     ("single_lobe", True, 0.02, "nee")])
 def test_finer_problem(variant, interface, alpha_p, connection):
-    """The finer objective: the same key, data and Jacobian walks, FINE_FACTOR times the walks, every walk
-    making every step, and the MIS connection where there are platelets narrower than MIS_ALPHA and no top
-    interface (which MIS does not go through)."""
+    """The finer objective: the same key and data, FINE_FACTOR times the walks, its Jacobian from as many of
+    them as the fit's objective has (not from the fit's fewer Jacobian walks), every walk making every step,
+    and the MIS connection where there are platelets narrower than MIS_ALPHA and no top interface (which MIS
+    does not go through)."""
     import jaxcos.inference._fit as fitting
 
     data = _synthetic(TRUTH, START)
@@ -1131,9 +1132,12 @@ def test_finer_problem(variant, interface, alpha_p, connection):
     base = fitting.make_problem(data, param, key=jax.random.key(3), walks=16, jacobian_walks=8, connection="nee",
                                 thin_after=16)
     layer = dataclasses.replace(TRUTH.layers[0], alpha_p=alpha_p)
-    finer = fitting.finer_problem(base, param.from_material(jaxcos.Material(layers=(layer,), variant=variant)))
+    x = param.from_material(jaxcos.Material(layers=(layer,), variant=variant))
+    finer = fitting.finer_problem(base, x)
     assert base.thin_after == 16 and finer.thin_after is None
-    assert (finer.walks, finer.jacobian_walks, finer.connection) == (16 * fitting.FINE_FACTOR, 8, connection)
+    assert (finer.walks, finer.jacobian_walks, finer.connection) == (16 * fitting.FINE_FACTOR, 16, connection)
+    whole = fitting.finer_problem(dataclasses.replace(base, jacobian_walks=None), x)
+    assert whole.jacobian_walks is None  # a Jacobian of every walk stays one of every walk
     assert finer.key is base.key and finer.measured is base.measured and finer.param is base.param
     assert 0.02 < fitting.MIS_ALPHA < 0.3
 

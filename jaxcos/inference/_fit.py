@@ -2214,8 +2214,13 @@ costs 1.3-1.5 times the time (benchmarks/RESULTS.md, decision records)."""
 def finer_problem(problem, x):
     """The objective of the finer refinement from ``x``: ``problem`` at :data:`FINE_FACTOR` times the walks.
 
-    The same key (the first of the walks are ``problem``'s) and the same
-    Jacobian walks; every walk makes every step (``thin_after=None``).
+    The same key (the first of the walks are ``problem``'s); its Jacobian
+    from the first ``problem.walks`` of them (where ``problem`` takes its
+    own from fewer), so that the steps follow slopes of the walks the fit
+    already ran (one compiled program) rather than of the refinements' few:
+    at 128 walks the slopes of a narrow lobe's objective are mostly noise
+    (cosines of 0.2-0.7 with those of 8192 walks); every walk makes every
+    step (``thin_after=None``).
     Where the material at ``x`` has platelets narrower than :data:`MIS_ALPHA`
     and no top interface the connection becomes ``"mis"``
     (:func:`~jaxcos.simulate`): the objectives that are mostly their own
@@ -2227,6 +2232,7 @@ def finer_problem(problem, x):
     mis = ("alpha_p" in problem.param.names and not problem.param.interface
            and float(problem.param.to_material(x).layers[0].alpha_p) < MIS_ALPHA)
     return dataclasses.replace(problem, walks=FINE_FACTOR * problem.walks,
+                               jacobian_walks=None if problem.jacobian_walks is None else problem.walks,
                                connection="mis" if mis else problem.connection, thin_after=None)
 
 
