@@ -3,7 +3,7 @@
 import os
 
 from .._errors import InputError, refuse_overwrite
-from ..inference import fit
+from ..inference import FitBudget, fit
 from ..io import load_measurements, load_params
 from ..model import FIT_BUDGET, FIT_JACOBIAN_WALKS, check_variant, resolve_budget
 from ..report import FIT_FILES, body_hint, gloss_hint, write_fit
@@ -38,18 +38,18 @@ def parse_noise(text):
 def fit_options(args):
     """The fit's settings from the parsed arguments, checked: what :func:`fit_into` takes as ``options``.
 
-    The Jacobian's walks are held to at most the walks, as :meth:`~jaxcos.inference.FitBudget.of` holds them, so
-    that a catalogue's settings line states the budget its fits ran with."""
+    The Jacobian's walks are those of :meth:`~jaxcos.inference.FitBudget.of` (at most the walks), so that a
+    catalogue's settings line states the budget its fits ran with."""
     check_variant(args.variant)
     walks, bounces = resolve_budget(args.budget, walks=args.walks, bounces=args.bounces,
                                     default=FIT_BUDGET)
     if args.jacobian_walks < 1:
         raise InputError(f"--jacobian-walks must be a positive integer, not {args.jacobian_walks}.")
     noise = parse_noise(args.noise) if args.noise is not None else None
+    budget = FitBudget.of(walks, bounces, args.jacobian_walks)
     return dict(variant=args.variant, method=args.method, seed=args.seed, walks=walks, bounces=bounces,
-                jacobian_walks=min(args.jacobian_walks, walks), starts=args.starts, fit_t=args.fit_t,
-                fit_phi=args.fit_phi, start=args.start, t=args.t, interface=args.interface, noise=noise,
-                finer=not args.no_finer)
+                jacobian_walks=budget.jacobian_walks, starts=args.starts, fit_t=args.fit_t, fit_phi=args.fit_phi,
+                start=args.start, t=args.t, interface=args.interface, noise=noise, finer=not args.no_finer)
 
 
 def fit_file(path, out, options, *, force=False, progress=None):
