@@ -1898,12 +1898,13 @@ def plan_starts(meas, param, connection, *, starts, t, rng):
 
 @dataclasses.dataclass(frozen=True)
 class Screened:
-    """The screen's outcome: every start's end, its rank (lower is better) and the best ``refine`` of them
-    (:func:`screen`)."""
+    """The screen's outcome: every start's end, its rank (lower is better), the best ``refine`` of them, and the
+    next :data:`MISSED_SCREENED` (:func:`screen`)."""
 
     ends: jnp.ndarray
     ranks: list
     order: list
+    reserve: list = dataclasses.field(default_factory=list)
 
 
 def screen(problem, pool, key, *, refine, refined_anyway=()):
@@ -1913,18 +1914,21 @@ def screen(problem, pool, key, *, refine, refined_anyway=()):
     the pair estimate of their chi-square over :data:`CHECK_BATCHES` independent
     batches (keys from ``key``) plus twice its SE (:func:`_pair_chi2`): the screen's
     own loss at so few walks would also rank the materials by how noisy they are to
-    simulate. An end with a non-finite residual ranks last. Of the best ``refine``
-    ends, those equal to a point of ``refined_anyway`` (the points refined
-    unscreened) are left out: a start whose screen rejected every step ends
-    where it began, and refining it again would repeat that refinement to the
-    last bit.
+    simulate. An end with a non-finite residual ranks last and is never refined.
+    Of the best ``refine`` ends (``order``) and the next :data:`MISSED_SCREENED`
+    (``reserve``, refined only where the fit misses: :func:`refine_missed`), those
+    equal to a point of ``refined_anyway`` (the points refined unscreened) are
+    left out: a start whose screen rejected every step ends where it began, and
+    refining it again would repeat that refinement to the last bit.
     """
     ends, resid = _screen(problem, pool, _batch_keys(key, CHECK_BATCHES))
     ranks = [_upper_bound(*_pair_chi2(r)) if np.all(np.isfinite(r)) else np.inf for r in np.asarray(resid, float)]
     ends_np = np.asarray(ends)
-    order = [int(i) for i in np.argsort(ranks)[:refine]
-             if not any(np.array_equal(ends_np[i], np.asarray(x)) for x in refined_anyway)]
-    return Screened(ends=ends, ranks=ranks, order=order)
+    ranked = [int(i) for i in np.argsort(ranks)]
+    new = lambda i: not any(np.array_equal(ends_np[i], np.asarray(x)) for x in refined_anyway)
+    order = [i for i in ranked[:refine] if new(i)]
+    reserve = [i for i in ranked[refine:refine + MISSED_SCREENED] if new(i) and np.isfinite(ranks[i])]
+    return Screened(ends=ends, ranks=ranks, order=order, reserve=reserve)
 
 
 PHASE_GRID = dict(g1=(0.2, 0.4, 0.6, 0.8), g2=(-0.6, -0.3, 0.0), w_g=(0.6, 0.8, 0.95))
@@ -2000,6 +2004,37 @@ class PhaseMove(NamedTuple):
     name: str
     x: np.ndarray
 
+    @property
+    def label(self):
+        return f"{self.start.label}, {self.name}"
+
+    @property
+    def message(self):
+        lobes = "one diffuser lobe" if self.name == "one lobe" else "other diffuser lobes"
+        return f"refining start {self.start.label} with {lobes}, where it fits better"
+
+
+class ReserveStart(NamedTuple):
+    """A screened start ranked just after those refined (:attr:`Screened.reserve`), not yet refined.
+
+    Attributes:
+        index: its place in the screen's pool (its label).
+        rank: its place in the screen's ranking, 0 the best.
+        x: the screen's end (unbounded coordinates).
+    """
+
+    index: int
+    rank: int
+    x: np.ndarray
+
+    @property
+    def label(self):
+        return str(self.index)
+
+    @property
+    def message(self):
+        return f"refining screened start {self.index}, ranked {self.rank + 1} by the screen"
+
 
 def best_phase_moves(refined):
     """Each refined start's best move of each kind that lowers its levelled loss, as :class:`PhaseMove`, best
@@ -2024,12 +2059,12 @@ def best_phase_moves(refined):
     return sorted(moves, key=lambda m: m.ratio)
 
 
-def _refine_moves(moves, refiner, say):
+def _refine_pending(pending, refiner, say):
+    """Each :class:`PhaseMove` or :class:`ReserveStart` of ``pending`` refined, as :class:`RefinedStart`."""
     out = []
-    for m in moves:
-        say(f"refining start {m.start.label} with "
-            f"{'one diffuser lobe' if m.name == 'one lobe' else 'other diffuser lobes'}, where it fits better")
-        out.append(refiner(f"{m.start.label}, {m.name}", m.x))
+    for m in pending:
+        say(m.message)
+        out.append(refiner(m.label, m.x))
     return out
 
 
@@ -2085,33 +2120,43 @@ def refine_phase(refined, refiner, say, noise_model=True):
     for m in moves:
         chosen.setdefault(m.name, m)
     kept = sorted(chosen.values(), key=lambda m: m.name != "one lobe")
-    return _refine_moves(kept, refiner, say), [m for m in moves if all(m is not c for c in kept)]
+    return _refine_pending(kept, refiner, say), [m for m in moves if all(m is not c for c in kept)]
 
 
 MISSED_CHI2 = 2.0
 """Where the selected start's material misses data with a noise model by more than this (its reduced
-chi-square under independent keys, less twice its SE), :func:`refine_missed` refines the other starts' phase
-moves too."""
+chi-square under independent keys, less twice its SE), :func:`refine_missed` refines the screen's reserve and
+the other starts' phase moves too."""
+
+MISSED_SCREENED = 3
+"""The screened starts ranked just after the refined ones that :func:`refine_missed` refines (the screen's
+reserve, :func:`screen`). The screen ranks its ends after five steps at 64 walks: on a random set (coverage
+seed 3, set 32: ``alpha_p`` 0.044) its three best ends all refined to a reduced chi-square of 42 and its fourth
+to 1.1, the truth's basin (benchmarks/RESULTS.md, decision records, "The screen's reserve")."""
 
 
 def refine_missed(refined, selection, pending, refiner, meas, key, walks, say):
-    """The other starts' phase moves, refined and checked, where the selected start misses the data.
+    """The screen's reserve and the other starts' phase moves, refined and checked, where the selected start
+    misses the data.
 
     Only for data with a noise model (a reduced chi-square), where the
     selected start's :attr:`CheckResult.reduced_chi2` less twice its SE is
     above :data:`MISSED_CHI2`: its material does not explain the data, and
-    the fit's outcome then turns on which start's phase move was refined
-    (benchmarks/RESULTS.md, decision records, "The fit's objective").
-    ``pending``: the :class:`PhaseMove` not refined by :func:`refine_phase`.
-    Each is refined and checked like the others (:func:`select`'s keys,
-    ``key``), and joins them. Returns ``(refined, selection)``.
+    the fit's outcome then turns on which start was refined, of the screen's
+    ranking (made at a small budget) and of the phase moves
+    (benchmarks/RESULTS.md, decision records, "The fit's objective" and
+    "The screen's reserve").
+    ``pending``: the :class:`ReserveStart` of the screen's reserve, then the
+    :class:`PhaseMove` not refined by :func:`refine_phase`. Each is refined
+    and checked like the others (:func:`select`'s keys, ``key``), and joins
+    them. Returns ``(refined, selection)``.
     """
     c = selection.checks[selection.best]
     if not pending or c.reduced_chi2 is None or c.reduced_chi2 - 2.0 * c.reduced_chi2_se <= MISSED_CHI2:
         return refined, selection
-    say(f"the selected start misses the data (reduced chi-square {c.reduced_chi2:.3g}): refining the other "
-        f"starts' phase moves too")
-    more = _refine_moves(pending, refiner, say)
+    say(f"the selected start misses the data (reduced chi-square {c.reduced_chi2:.3g}): refining the screen's "
+        f"next starts and the other starts' phase moves too")
+    more = _refine_pending(pending, refiner, say)
     return refined + more, selection.extended(select(more, meas, key, walks))
 
 
@@ -2123,7 +2168,8 @@ def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, sa
     Then the best one-lobe point and the best other phase function of them
     are refined too, where they fit better (:func:`refine_phase`). Returns
     the :class:`RefinedStart` of each, the screened ones first, the moved ones
-    last, and the other :class:`PhaseMove` not refined.
+    last, and what :func:`refine_missed` may refine: the :class:`ReserveStart`
+    of the screen's reserve, then the other :class:`PhaseMove` not refined.
     """
     screen_problem = dataclasses.replace(problem, walks=budget.screen_walks, bounces=budget.screen_bounces,
                                          jacobian_walks=None, thin_after=None)
@@ -2142,7 +2188,9 @@ def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, sa
             say("the screen's best end is a start refined unscreened: no screened start refined besides")
         refined = [refiner(str(i), screened.ends[i]) for i in screened.order] + [u.result() for u in unscreened]
         moved, pending = refine_phase(refined, refiner, say, noise_model=refiner.meas.std is not None)
-        return refined + moved, pending
+        ranked = [int(i) for i in np.argsort(screened.ranks)]
+        reserve = [ReserveStart(i, ranked.index(i), np.asarray(screened.ends[i])) for i in screened.reserve]
+        return refined + moved, reserve + pending
     finally:
         refiner.stop.set()  # an interrupted fit leaves its background starts after the pass they are in
 
@@ -2383,8 +2431,9 @@ def fit(meas, *, variant="two_lobe", method="lm", seed=0, walks=FIT_WALKS, bounc
             :data:`POLISH_STEPS` Gauss-Newton steps on fresh checks' residuals,
             each kept where it checks better (LM only; :func:`polish`).
             Where the data have a noise model and the best
-            check misses them, the other starts' best phase moves are
-            refined and checked too (:func:`refine_missed`).
+            check misses them, the next :data:`MISSED_SCREENED` screened
+            starts and the other starts' best phase moves are refined and
+            checked too (:func:`refine_missed`).
         fit_t, fit_phi: also fit the optical thickness ``t`` (else fixed at ``t``)
             or the tilt azimuth ``phi_p`` (else 0).
         start: a :class:`Material` to start from instead of the multi-start
