@@ -921,11 +921,13 @@ def test_screen_leaves_out_an_end_that_is_refined_unscreened_anyway(monkeypatch)
     assert fitting.screen(None, pool, key, refine=3, refined_anyway=(pool[1],)).order == [0, 2]
     # a point merely near an end is another start
     assert fitting.screen(None, pool, key, refine=1, refined_anyway=(pool[0] + 1e-6,)).order == [0]
-    # the reserve: the next MISSED_SCREENED ends, the same left out
-    assert fitting.screen(None, pool, key, refine=1).reserve == [1, 2]
-    assert fitting.screen(None, pool, key, refine=1, refined_anyway=(pool[2],)).reserve == [1]
+    # the reserve: the next MISSED_SCREENED ends, with their ranks and ends, the same left out
+    reserve = lambda **kw: [(r.index, r.rank) for r in fitting.screen(None, pool, key, refine=1, **kw).reserve]
+    assert reserve() == [(1, 1), (2, 2)]
+    np.testing.assert_array_equal(fitting.screen(None, pool, key, refine=1).reserve[0].x, pool[1])
+    assert reserve(refined_anyway=(pool[2],)) == [(1, 1)]
     monkeypatch.setattr(fitting, "MISSED_SCREENED", 1)
-    assert fitting.screen(None, pool, key, refine=1).reserve == [1]
+    assert reserve() == [(1, 1)]
 
 
 def test_screen_never_reserves_an_end_that_failed(monkeypatch):
@@ -936,7 +938,7 @@ def test_screen_never_reserves_an_end_that_failed(monkeypatch):
     resid = jnp.stack([jnp.full((fitting.CHECK_BATCHES, 5), v) for v in (1.0, jnp.nan, 2.0)])
     monkeypatch.setattr(fitting, "_screen", lambda problem, xs, keys: (xs, resid))
     screened = fitting.screen(None, pool, jax.random.key(SEED), refine=1)
-    assert screened.order == [0] and screened.reserve == [2]
+    assert screened.order == [0] and [(r.index, r.rank) for r in screened.reserve] == [(2, 1)]
 
 
 def test_background_refinement_hands_over_its_result_and_its_error():

@@ -1896,15 +1896,37 @@ def plan_starts(meas, param, connection, *, starts, t, rng):
                      x_unscreened=tuple(to_x(f) for f in unscreened))
 
 
+class ReserveStart(NamedTuple):
+    """A screened start ranked just after those refined (:attr:`Screened.reserve`), not yet refined.
+
+    Attributes:
+        index: its place in the screen's pool (its label).
+        rank: its place in the screen's ranking, 0 the best.
+        x: the screen's end (unbounded coordinates).
+    """
+
+    index: int
+    rank: int
+    x: np.ndarray
+
+    @property
+    def label(self):
+        return str(self.index)
+
+    @property
+    def message(self):
+        return f"refining screened start {self.index}, ranked {self.rank + 1} by the screen"
+
+
 @dataclasses.dataclass(frozen=True)
 class Screened:
     """The screen's outcome: every start's end, its rank (lower is better), the best ``refine`` of them, and the
-    next :data:`MISSED_SCREENED` (:func:`screen`)."""
+    :class:`ReserveStart` of the next :data:`MISSED_SCREENED` (:func:`screen`)."""
 
     ends: jnp.ndarray
     ranks: list
     order: list
-    reserve: list = dataclasses.field(default_factory=list)
+    reserve: list
 
 
 def screen(problem, pool, key, *, refine, refined_anyway=()):
@@ -1914,7 +1936,7 @@ def screen(problem, pool, key, *, refine, refined_anyway=()):
     the pair estimate of their chi-square over :data:`CHECK_BATCHES` independent
     batches (keys from ``key``) plus twice its SE (:func:`_pair_chi2`): the screen's
     own loss at so few walks would also rank the materials by how noisy they are to
-    simulate. An end with a non-finite residual ranks last and is never refined.
+    simulate. An end with a non-finite residual ranks last, and is never in the reserve.
     Of the best ``refine`` ends (``order``) and the next :data:`MISSED_SCREENED`
     (``reserve``, refined only where the fit misses: :func:`refine_missed`), those
     equal to a point of ``refined_anyway`` (the points refined unscreened) are
@@ -1927,7 +1949,8 @@ def screen(problem, pool, key, *, refine, refined_anyway=()):
     ranked = [int(i) for i in np.argsort(ranks)]
     new = lambda i: not any(np.array_equal(ends_np[i], np.asarray(x)) for x in refined_anyway)
     order = [i for i in ranked[:refine] if new(i)]
-    reserve = [i for i in ranked[refine:refine + MISSED_SCREENED] if new(i) and np.isfinite(ranks[i])]
+    reserve = [ReserveStart(i, rank, ends_np[i]) for rank, i in enumerate(ranked)
+               if refine <= rank < refine + MISSED_SCREENED and new(i) and np.isfinite(ranks[i])]
     return Screened(ends=ends, ranks=ranks, order=order, reserve=reserve)
 
 
@@ -2012,28 +2035,6 @@ class PhaseMove(NamedTuple):
     def message(self):
         lobes = "one diffuser lobe" if self.name == "one lobe" else "other diffuser lobes"
         return f"refining start {self.start.label} with {lobes}, where it fits better"
-
-
-class ReserveStart(NamedTuple):
-    """A screened start ranked just after those refined (:attr:`Screened.reserve`), not yet refined.
-
-    Attributes:
-        index: its place in the screen's pool (its label).
-        rank: its place in the screen's ranking, 0 the best.
-        x: the screen's end (unbounded coordinates).
-    """
-
-    index: int
-    rank: int
-    x: np.ndarray
-
-    @property
-    def label(self):
-        return str(self.index)
-
-    @property
-    def message(self):
-        return f"refining screened start {self.index}, ranked {self.rank + 1} by the screen"
 
 
 def best_phase_moves(refined):
@@ -2188,9 +2189,7 @@ def screen_and_refine(plan, problem, refiner, key, *, budget, refine, method, sa
             say("the screen's best end is a start refined unscreened: no screened start refined besides")
         refined = [refiner(str(i), screened.ends[i]) for i in screened.order] + [u.result() for u in unscreened]
         moved, pending = refine_phase(refined, refiner, say, noise_model=refiner.meas.std is not None)
-        ranked = [int(i) for i in np.argsort(screened.ranks)]
-        reserve = [ReserveStart(i, ranked.index(i), np.asarray(screened.ends[i])) for i in screened.reserve]
-        return refined + moved, reserve + pending
+        return refined + moved, screened.reserve + pending
     finally:
         refiner.stop.set()  # an interrupted fit leaves its background starts after the pass they are in
 
